@@ -1,0 +1,207 @@
+"""Command line: ``python -m demo [list | render SCENE | interactive SCENE | homework ... | figures ...]``.
+
+With no command it renders the default scene (the stiffness sweep) headless into
+``out/stiffness_sweep/``: numbered PNG frames and an mp4.
+"""
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import solver
+
+from .errors import DemoError
+
+COMMANDS = ("list", "render", "interactive", "homework", "figures")
+DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
+
+
+class _Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one-line DemoErrors instead of usage dumps."""
+
+    def error(self, message):
+        raise DemoError(f"{message} (see {self.prog} --help)")
+
+
+def _size(text):
+    match = re.fullmatch(r"(\d+)x(\d+)", text)
+    if not match:
+        raise argparse.ArgumentTypeError(f"bad size {text!r}: expected WIDTHxHEIGHT, for example 1280x720")
+    width, height = int(match[1]), int(match[2])
+    if not (16 <= width <= 8192 and 16 <= height <= 8192):
+        raise argparse.ArgumentTypeError(f"bad size {text!r}: width and height must be between 16 and 8192")
+    return width, height
+
+
+def _positive(text):
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}")
+    return value
+
+
+def build_parser():
+    from . import scenes
+    from .export import ExportFormat
+    from .video import VideoFormat
+
+    formatter = argparse.ArgumentDefaultsHelpFormatter
+    parser = _Parser(prog="python -m demo", formatter_class=formatter,
+                     description="VBD teaching demos: headless image sequences and video, or an interactive "
+                                 "window. With no command: render the stiffness sweep into out/stiffness_sweep/.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.add_parser("list", help="list the scenes", formatter_class=formatter)
+
+    render = sub.add_parser("render", help="render a scene headless to PNG frames (+ video, + meshes)",
+                            formatter_class=formatter)
+    render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
+    render.add_argument("--frames", type=_positive, default=None, help="number of frames (default: the scene's own)")
+    render.add_argument("--out", type=Path, default=None, help="output folder (default: out/SCENE)")
+    render.add_argument("--size", type=_size, default=(1280, 720), metavar="WxH", help="image size in pixels")
+    render.add_argument("--fps", type=_positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
+    render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
+                        help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
+    render.add_argument("--overwrite", action="store_true", help="replace files left by an earlier run")
+    render.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
+
+    interactive = sub.add_parser("interactive", help="open the interactive window (needs Vulkan)",
+                                 formatter_class=formatter)
+    interactive.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
+    interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
+    interactive.add_argument("--size", type=_size, default=(1280, 720), metavar="WxH", help="window size in pixels")
+
+    sub.add_parser("homework", help="homework tools (python -m demo homework --help)", add_help=False)
+    sub.add_parser("figures", help="lecture figures (python -m demo figures --help)", add_help=False)
+    return parser
+
+
+def list_scenes():
+    from . import scenes
+
+    for scene in scenes.SCENES.values():
+        default = " (default)" if scene.name == scenes.DEFAULT_SCENE else ""
+        print(f"{scene.name:18s} {scene.title}{default}")
+
+
+def planned_files(out, scene, frames, video, export):
+    """Every file a render will write, so existing ones can be refused before any work starts."""
+    from .export import ExportFormat
+    from .video import VideoFormat
+
+    files = [out / f"frame_{i:04d}.png" for i in range(frames)]
+    if video is not VideoFormat.NONE:
+        files.append(out / f"{scene.name}.{video.value}")
+    if export is not ExportFormat.NONE:
+        files += [out / "meshes" / f"frame_{i:04d}_panel{p}.{export.value}"
+                  for i in range(frames) for p in range(len(scene.panels))]
+    return files
+
+
+def prepare_output(out, files, overwrite):
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if any(f.parent != out for f in files):
+            (out / "meshes").mkdir(exist_ok=True)
+    except OSError as e:
+        raise DemoError(f"cannot create output folder {out}: {e.strerror}") from None
+    if not out.is_dir():
+        raise DemoError(f"output folder {out} is not a folder")
+    existing = [f for f in files if f.exists()]
+    if existing and not overwrite:
+        more = f" and {len(existing) - 1} more" if len(existing) > 1 else ""
+        raise DemoError(f"{existing[0]}{more} already exist; pass --overwrite to replace them or --out to "
+                        f"choose another folder")
+
+
+def render(args):
+    from tqdm import tqdm
+
+    from . import scenes
+    from .compose import FrameComposer
+    from .export import ExportFormat, export_mesh
+    from .runner import SceneRunner
+    from .video import VideoFormat, VideoWriter
+
+    scene = scenes.get(args.scene)
+    frames = args.frames or scene.frames
+    fps = args.fps or scene.fps
+    out = args.out if args.out is not None else Path("out") / scene.name
+    video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
+    width, height = args.size
+    files = planned_files(out, scene, frames, video_format, export_format)
+    writer = VideoWriter(files[frames] if video_format is not VideoFormat.NONE else None, video_format, fps,
+                         (width, height))
+    prepare_output(out, files, args.overwrite)
+
+    started = time.perf_counter()
+    runner = SceneRunner(scene, arch=args.arch)
+    composer = FrameComposer(scene, width, height, arch=args.arch)
+    try:
+        with writer:
+            for i in tqdm(range(frames), desc=scene.name, unit="frame", disable=None):
+                states = runner.advance()
+                image = composer.compose(states)
+                image.save(files[i], compress_level=1)
+                writer.append(np.asarray(image))
+                if export_format is not ExportFormat.NONE:
+                    for p, (panel, state) in enumerate(zip(runner.panels, states)):
+                        export_mesh(out / "meshes" / f"frame_{i:04d}_panel{p}.{export_format.value}", export_format,
+                                    state.positions, panel.tets, panel.faces,
+                                    {"step_displacement": state.positions - panel.start})
+    except OSError as e:
+        raise DemoError(f"cannot write into {out}: {e.strerror or e}") from None
+    elapsed = time.perf_counter() - started
+    print(f"wrote {frames} frames to {out}/frame_0000.png ... frame_{frames - 1:04d}.png in {elapsed:.1f} s")
+    if video_format is not VideoFormat.NONE:
+        print(f"video: {files[frames]} ({fps} fps, {width}x{height})")
+    if export_format is not ExportFormat.NONE:
+        print(f"meshes: {out / 'meshes'}/")
+
+
+def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] in DELEGATED:
+            return _delegate(argv[0], argv[1:])
+        if not argv or (argv[0] not in COMMANDS and argv[0] not in ("-h", "--help")):
+            argv = ["render"] + argv
+        args = build_parser().parse_args(argv)
+        if args.command == "list":
+            list_scenes()
+        elif args.command == "render":
+            render(args)
+        elif args.command == "interactive":
+            from . import interactive
+
+            interactive.run(args.scene, arch=args.arch, size=args.size)
+        return 0
+    except solver.VBDError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _delegate(command, rest):
+    import importlib
+
+    name = DELEGATED[command]
+    try:
+        module = importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        if e.name != name:
+            raise
+        raise DemoError(f"`{command}` is not available: {name} is not in this checkout") from None
+    return module.main(rest) or 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""Colour maps: a sequential map for scalar fields and a palette for colour sets (RGB in [0, 1])."""
+import numpy as np
+
+BODY_COLOUR = (0.30, 0.55, 0.85)
+FIXED_COLOUR = (0.35, 0.35, 0.38)
+
+# Dark blue -> teal -> green -> yellow, in the spirit of perceptually ordered maps.
+_SEQUENTIAL_STOPS = np.array([
+    [0.18, 0.05, 0.33],
+    [0.23, 0.32, 0.55],
+    [0.13, 0.57, 0.55],
+    [0.37, 0.79, 0.38],
+    [0.99, 0.91, 0.15],
+])
+
+# Twelve well separated hues for colour sets; fixed or scripted vertices are drawn grey.
+_PALETTE = np.array([
+    [0.90, 0.30, 0.25], [0.25, 0.55, 0.90], [0.30, 0.75, 0.35], [0.95, 0.70, 0.15],
+    [0.60, 0.35, 0.80], [0.15, 0.80, 0.80], [0.95, 0.45, 0.70], [0.55, 0.40, 0.25],
+    [0.60, 0.80, 0.20], [0.20, 0.30, 0.55], [0.85, 0.85, 0.85], [0.05, 0.50, 0.45],
+])
+
+
+def normalise(values, lo, hi, log=False):
+    """Map values to [0, 1] linearly (or in log10) between lo and hi, clamping outside."""
+    v = np.asarray(values, float)
+    if log:
+        v, lo, hi = np.log10(np.maximum(v, lo)), np.log10(lo), np.log10(hi)
+    return np.clip((v - lo) / (hi - lo), 0.0, 1.0)
+
+
+def sequential(t):
+    """RGB for parameters t in [0, 1]."""
+    x = np.asarray(t, float) * (len(_SEQUENTIAL_STOPS) - 1)
+    i = np.minimum(x.astype(int), len(_SEQUENTIAL_STOPS) - 2)
+    frac = (x - i)[..., None]
+    return _SEQUENTIAL_STOPS[i] * (1 - frac) + _SEQUENTIAL_STOPS[i + 1] * frac
+
+
+def categorical(index):
+    """RGB per integer label; negative labels (fixed vertices) are grey."""
+    index = np.asarray(index)
+    rgb = _PALETTE[np.mod(index, len(_PALETTE))]
+    rgb[index < 0] = FIXED_COLOUR
+    return rgb
+
+
+def uniform(n, rgb=BODY_COLOUR):
+    """The same colour for n vertices."""
+    return np.tile(np.asarray(rgb, float), (n, 1))

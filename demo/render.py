@@ -1,0 +1,292 @@
+"""Headless software renderer written in Taichi kernels.
+
+The renderer draws the boundary triangles of one or more tet meshes into an RGB image:
+
+1. ``_rasterise`` runs one thread per triangle. Each thread walks the pixels of its screen
+   bounding box and keeps, per pixel, the smallest 64-bit key ``(view depth bits << 32) | triangle``
+   with an atomic min. Positive float32 values order like their bit patterns, so the key is a
+   z-buffer whose ties are broken by triangle index: the result does not depend on thread order,
+   which makes every image bit-for-bit reproducible.
+2. ``_shade`` runs one thread per pixel. It decodes the winning triangle, interpolates the vertex
+   colours with perspective-correct barycentric weights, applies the triangle's light factor,
+   draws a reference grid plane (the ground, or a back wall) where it is nearer than the mesh,
+   and blends a translucent, outlined "ghost" mesh (the Newton reference) on top.
+
+Text, legends and panel borders are drawn afterwards with Pillow (see ``demo.compose``).
+Buffers are allocated once per ``Renderer``; the kernels take ndarray arguments, so they are
+compiled once per process whatever the mesh sizes are.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+import solver
+
+EMPTY_KEY = np.iinfo(np.int64).max
+NEAR_PLANE = 1e-3
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole camera: eye position, point looked at, up direction, vertical field of view."""
+
+    eye: tuple = (0.5, -3.0, 0.0)
+    target: tuple = (0.5, 0.0, 0.0)
+    up: tuple = (0.0, 0.0, 1.0)
+    fov_degrees: float = 40.0
+
+    def basis(self):
+        """Orthonormal (right, up, forward) rows of the view frame."""
+        eye, target = np.asarray(self.eye, float), np.asarray(self.target, float)
+        forward = target - eye
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, np.asarray(self.up, float))
+        right /= np.linalg.norm(right)
+        return np.stack([right, np.cross(right, forward), forward])
+
+
+@dataclass(frozen=True)
+class GridPlane:
+    """A reference plane drawn with grid lines: ``point`` on it, unit ``normal``, line ``spacing``."""
+
+    point: tuple = (0.0, 0.0, 0.0)
+    normal: tuple = (0.0, 0.0, 1.0)
+    spacing: float = 0.1
+
+
+@dataclass(frozen=True)
+class Viewport:
+    """Pixel rectangle of the image that one panel is drawn into."""
+
+    x: int
+    y: int
+    width: int
+    height: int
+
+
+BACKGROUND_TOP = (0.93, 0.94, 0.96)
+BACKGROUND_BOTTOM = (0.78, 0.80, 0.84)
+GRID_COLOUR = (0.55, 0.57, 0.62)
+GHOST_COLOUR = (0.95, 0.35, 0.25)
+GHOST_ALPHA = 0.35
+LIGHT_DIRECTION = np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76])
+
+
+@ti.kernel
+def _clear(key: ti.types.ndarray(dtype=ti.i64, ndim=2), x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
+    for r, c in ti.ndrange((y0, y1), (x0, x1)):
+        key[r, c] = ti.i64(9223372036854775807)
+
+
+@ti.func
+def _edge(ax, ay, bx, by, px, py):
+    return (bx - ax) * (py - ay) - (by - ay) * (px - ax)
+
+
+@ti.kernel
+def _rasterise(screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
+               key: ti.types.ndarray(dtype=ti.i64, ndim=2), x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
+    for f in range(faces.shape[0]):
+        a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+        ax, ay, az = screen[a, 0], screen[a, 1], screen[a, 2]
+        bx, by, bz = screen[b, 0], screen[b, 1], screen[b, 2]
+        cx, cy, cz = screen[c, 0], screen[c, 1], screen[c, 2]
+        area = _edge(ax, ay, bx, by, cx, cy)
+        if az > NEAR_PLANE and bz > NEAR_PLANE and cz > NEAR_PLANE and ti.abs(area) > 1e-12:
+            lo_c = ti.max(x0, ti.cast(ti.floor(ti.min(ax, bx, cx)), ti.i32))
+            hi_c = ti.min(x1 - 1, ti.cast(ti.ceil(ti.max(ax, bx, cx)), ti.i32))
+            lo_r = ti.max(y0, ti.cast(ti.floor(ti.min(ay, by, cy)), ti.i32))
+            hi_r = ti.min(y1 - 1, ti.cast(ti.ceil(ti.max(ay, by, cy)), ti.i32))
+            inv_area = 1.0 / area
+            for r in range(lo_r, hi_r + 1):
+                py = ti.cast(r, ti.f32) + 0.5
+                for col in range(lo_c, hi_c + 1):
+                    px = ti.cast(col, ti.f32) + 0.5
+                    wa = _edge(bx, by, cx, cy, px, py) * inv_area
+                    wb = _edge(cx, cy, ax, ay, px, py) * inv_area
+                    wc = 1.0 - wa - wb
+                    if wa >= 0.0 and wb >= 0.0 and wc >= 0.0:
+                        inv_depth = wa / az + wb / bz + wc / cz
+                        depth = ti.cast(1.0 / inv_depth, ti.f32)
+                        k = (ti.cast(ti.bit_cast(depth, ti.i32), ti.i64) << 32) | ti.cast(f, ti.i64)
+                        ti.atomic_min(key[r, col], k)
+
+
+@ti.func
+def _corner_weights(screen: ti.template(), faces: ti.template(), f, px, py):
+    """Perspective-correct barycentric weights of pixel (px, py) in triangle f."""
+    a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+    ax, ay, az = screen[a, 0], screen[a, 1], screen[a, 2]
+    bx, by, bz = screen[b, 0], screen[b, 1], screen[b, 2]
+    cx, cy, cz = screen[c, 0], screen[c, 1], screen[c, 2]
+    inv_area = 1.0 / _edge(ax, ay, bx, by, cx, cy)
+    wa = _edge(bx, by, cx, cy, px, py) * inv_area / az
+    wb = _edge(cx, cy, ax, ay, px, py) * inv_area / bz
+    wc = (1.0 - _edge(bx, by, cx, cy, px, py) * inv_area - _edge(cx, cy, ax, ay, px, py) * inv_area) / cz
+    s = wa + wb + wc
+    return ti.Vector([wa / s, wb / s, wc / s])
+
+
+@ti.func
+def _decode_depth(k):
+    return ti.bit_cast(ti.cast(k >> 32, ti.i32), ti.f32)
+
+
+@ti.kernel
+def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), key: ti.types.ndarray(dtype=ti.i64, ndim=2),
+           screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
+           colours: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           ghost_key: ti.types.ndarray(dtype=ti.i64, ndim=2), ghost_light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           has_ghost: ti.i32, frame: ti.types.ndarray(dtype=ti.f32, ndim=2), focal: ti.f32,
+           grid: ti.types.ndarray(dtype=ti.f32, ndim=1), has_grid: ti.i32, nearest: ti.i32,
+           x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
+    empty = ti.i64(9223372036854775807)
+    cx = 0.5 * ti.cast(x0 + x1, ti.f32)
+    cy = 0.5 * ti.cast(y0 + y1, ti.f32)
+    eye = ti.Vector([frame[3, 0], frame[3, 1], frame[3, 2]])
+    right = ti.Vector([frame[0, 0], frame[0, 1], frame[0, 2]])
+    up = ti.Vector([frame[1, 0], frame[1, 1], frame[1, 2]])
+    forward = ti.Vector([frame[2, 0], frame[2, 1], frame[2, 2]])
+    for r, c in ti.ndrange((y0, y1), (x0, x1)):
+        px = ti.cast(c, ti.f32) + 0.5
+        py = ti.cast(r, ti.f32) + 0.5
+        t = (py - ti.cast(y0, ti.f32)) / ti.cast(y1 - y0, ti.f32)
+        rgb = ti.Vector([BACKGROUND_TOP[0], BACKGROUND_TOP[1], BACKGROUND_TOP[2]]) * (1.0 - t) + \
+            ti.Vector([BACKGROUND_BOTTOM[0], BACKGROUND_BOTTOM[1], BACKGROUND_BOTTOM[2]]) * t
+        k = key[r, c]
+        mesh_depth = 3.0e38
+        if k != empty:
+            mesh_depth = _decode_depth(k)
+        if has_grid != 0:
+            ray = (forward + right * ((px - cx) / focal) - up * ((py - cy) / focal))
+            normal = ti.Vector([grid[3], grid[4], grid[5]])
+            denom = ray.dot(normal)
+            if ti.abs(denom) > 1e-6:
+                point = ti.Vector([grid[0], grid[1], grid[2]])
+                s = (point - eye).dot(normal) / denom
+                if s > 0.0 and s < mesh_depth:
+                    hit = eye + ray * s
+                    spacing = grid[6]
+                    # line width grows with distance so lines stay about one pixel wide
+                    width = 1.2 * s / focal
+                    line = 0.0
+                    for d in ti.static(range(3)):
+                        if ti.abs(normal[d]) < 0.5:
+                            u = hit[d] / spacing
+                            dist = ti.abs(u - ti.round(u)) * spacing
+                            line = ti.max(line, ti.max(0.0, 1.0 - dist / width))
+                    fade = ti.exp(-0.25 * s)
+                    rgb = rgb * (1.0 - 0.6 * line * fade) + ti.Vector(GRID_COLOUR) * (0.6 * line * fade)
+        if k != empty:
+            f = ti.cast(k & ti.i64(0xFFFFFFFF), ti.i32)
+            w = _corner_weights(screen, faces, f, px, py)
+            if nearest != 0:
+                # each pixel takes the colour of the nearest corner: vertices become patches
+                best = 0
+                if w[1] > w[best]:
+                    best = 1
+                if w[2] > w[best]:
+                    best = 2
+                w = ti.Vector([0.0, 0.0, 0.0])
+                w[best] = 1.0
+            base = ti.Vector([0.0, 0.0, 0.0])
+            for j in ti.static(range(3)):
+                v = faces[f, j]
+                base += w[j] * ti.Vector([colours[v, 0], colours[v, 1], colours[v, 2]])
+            rgb = base * light[f]
+        if has_ghost != 0:
+            g = ghost_key[r, c]
+            if g != empty:
+                gf = ti.cast(g & ti.i64(0xFFFFFFFF), ti.i32)
+                ghost = ti.Vector(GHOST_COLOUR) * ghost_light[gf]
+                edge = 0
+                if r > y0 and r < y1 - 1 and c > x0 and c < x1 - 1:
+                    if ghost_key[r - 1, c] == empty or ghost_key[r + 1, c] == empty or \
+                            ghost_key[r, c - 1] == empty or ghost_key[r, c + 1] == empty:
+                        edge = 1
+                if edge == 1:
+                    rgb = ti.Vector(GHOST_COLOUR) * 0.8
+                elif k == empty:
+                    # translucent where the body is not; over the body only the outline shows
+                    rgb = rgb * (1.0 - GHOST_ALPHA) + ghost * GHOST_ALPHA
+        for j in ti.static(range(3)):
+            image[r, c, j] = ti.cast(ti.min(255.0, ti.max(0.0, rgb[j] * 255.0 + 0.5)), ti.u8)
+
+
+@dataclass
+class Body:
+    """What to draw for one panel: vertex positions, boundary faces and per-vertex RGB in [0, 1]."""
+
+    positions: np.ndarray
+    faces: np.ndarray
+    colours: np.ndarray
+    ghost_positions: np.ndarray = None
+    nearest_vertex: bool = False    # paint each pixel with its nearest corner's colour (no blending)
+
+
+class Renderer:
+    """Draws bodies into a fixed-size RGB image. Allocate one per image size and reuse it."""
+
+    def __init__(self, width, height, arch="cpu"):
+        solver.ensure_taichi(arch=arch)
+        self.width, self.height = int(width), int(height)
+        self._key = ti.ndarray(ti.i64, shape=(self.height, self.width))
+        self._ghost_key = ti.ndarray(ti.i64, shape=(self.height, self.width))
+        self._image = ti.ndarray(ti.u8, shape=(self.height, self.width, 3))
+        self._no_faces = np.zeros((0, 3), np.int32)
+        self._no_light = np.zeros(1, np.float32)
+        self._no_grid = np.zeros(7, np.float32)
+
+    def draw(self, body, camera, viewport=None, grid=None):
+        """Draw ``body`` seen from ``camera`` into ``viewport`` (default: the whole image)."""
+        vp = viewport or Viewport(0, 0, self.width, self.height)
+        box = (vp.x, vp.y, vp.x + vp.width, vp.y + vp.height)
+        basis = camera.basis()
+        eye = np.asarray(camera.eye, float)
+        focal = 0.5 * vp.height / np.tan(np.radians(camera.fov_degrees) / 2)
+        centre = (vp.x + 0.5 * vp.width, vp.y + 0.5 * vp.height)
+        faces = np.ascontiguousarray(body.faces, dtype=np.int32)
+
+        screen, light = self._project(body.positions, faces, basis, eye, focal, centre)
+        _clear(self._key, *box)
+        _rasterise(screen, faces, self._key, *box)
+        has_ghost = body.ghost_positions is not None
+        ghost_light = self._no_light
+        if has_ghost:
+            ghost_screen, ghost_light = self._project(body.ghost_positions, faces, basis, eye, focal, centre)
+            _clear(self._ghost_key, *box)
+            _rasterise(ghost_screen, faces, self._ghost_key, *box)
+        frame = np.vstack([basis, eye]).astype(np.float32)
+        grid_data = self._no_grid
+        if grid is not None:
+            normal = np.asarray(grid.normal, float) / np.linalg.norm(grid.normal)
+            grid_data = np.array([*grid.point, *normal, grid.spacing], np.float32)
+        colours = np.ascontiguousarray(body.colours, dtype=np.float32)
+        _shade(self._image, self._key, screen, faces, colours, light, self._ghost_key, ghost_light,
+               int(has_ghost), frame, float(focal), grid_data, int(grid is not None),
+               int(body.nearest_vertex), *box)
+
+    def image(self):
+        """The current image as an (height, width, 3) uint8 array."""
+        return self._image.to_numpy()
+
+    @staticmethod
+    def _project(positions, faces, basis, eye, focal, centre):
+        """Screen coordinates (column, row, view depth) per vertex and a light factor per face."""
+        view = (np.asarray(positions, float) - eye) @ basis.T
+        depth = np.maximum(view[:, 2], 1e-9)
+        screen = np.empty((len(view), 3), np.float32)
+        screen[:, 0] = centre[0] + focal * view[:, 0] / depth
+        screen[:, 1] = centre[1] - focal * view[:, 1] / depth
+        screen[:, 2] = view[:, 2]
+        p = np.asarray(positions, float)[faces]
+        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
+        # light both sides: turn every normal towards the camera
+        to_eye = eye - p.mean(axis=1)
+        normal *= np.where(np.einsum("ij,ij->i", normal, to_eye) < 0, -1.0, 1.0)[:, None]
+        diffuse = np.clip(normal @ LIGHT_DIRECTION, 0.0, 1.0)
+        head = np.clip(normal @ -basis[2], 0.0, 1.0)
+        light = (0.30 + 0.45 * diffuse + 0.30 * head).astype(np.float32)
+        return screen, light

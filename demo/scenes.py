@@ -1,0 +1,253 @@
+"""The demo scenes, as data.
+
+A ``Scene`` is a frozen description shared by the command line, the interactive window, the
+benchmarks and the tests: which meshes, materials, pinned and scripted vertices, time step,
+iteration budget, camera and length, and what the labels say. ``demo.runner`` turns one into
+running simulations. A scene only asks for what it uses: ground contact, damping, Chebyshev
+acceleration or a Newton reference ghost appear only where a scene sets them.
+
+Scenes are side-by-side panels of one or more bodies. Every panel is its own ``solver.Simulation``
+with its own settings, so a sweep is simply several panels that differ in one field.
+"""
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import solver
+
+from .errors import DemoError
+from .render import Camera, GridPlane
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class ColourBy(enum.Enum):
+    """How vertices are coloured."""
+
+    BODY = "body"                  # one flat colour
+    DISPLACEMENT = "displacement"  # |x - x_n| in this time step, log scale
+    RESIDUAL = "residual"          # |f_i|, the per-vertex force residual, log scale
+    COLOUR_SETS = "colour sets"    # the parallel colour of each vertex
+
+
+class Advance(enum.Enum):
+    """What one output frame shows."""
+
+    TIME_STEPS = "time steps"    # one full time step per frame
+    ITERATIONS = "iterations"    # one solver iteration of a single time step per frame
+
+
+class Side(enum.Enum):
+    LOW = "low"
+    HIGH = "high"
+
+
+@dataclass(frozen=True)
+class BoxMesh:
+    """A box of size (m) split into cells, each cell into tets."""
+
+    size: tuple = (1.0, 0.1, 0.1)
+    cells: tuple = (40, 4, 4)
+    origin: tuple = (0.0, 0.0, 0.0)
+
+    def build(self):
+        return solver.box_mesh(size=self.size, cells=self.cells, origin=self.origin)
+
+
+@dataclass(frozen=True)
+class AssetMesh:
+    """A mesh file under the repository (a surface file is voxelised at ``resolution``)."""
+
+    path: str
+    resolution: int = None
+
+    def build(self):
+        path = REPO_ROOT / self.path
+        if not path.exists():
+            raise DemoError(f"mesh asset {self.path} not found under {REPO_ROOT}")
+        if self.resolution is None:
+            return solver.load_mesh(str(path))
+        return solver.load_mesh(str(path), resolution=self.resolution)
+
+
+@dataclass(frozen=True)
+class EndFace:
+    """The vertices on the lowest or highest face of the body along an axis (0 = x)."""
+
+    axis: int = 0
+    side: Side = Side.LOW
+
+    def select(self, vertices):
+        coord = vertices[:, self.axis]
+        tol = 1e-6 * max(float(np.ptp(vertices)), 1e-12)
+        end = coord.min() if self.side is Side.LOW else coord.max()
+        return np.abs(coord - end) <= tol
+
+
+@dataclass(frozen=True)
+class Twist:
+    """Scripted motion: the two ends of a bar turn in opposite directions about the bar's axis."""
+
+    axis: int = 0
+    degrees_per_second: float = 180.0
+
+    def __call__(self, t, rest):
+        centre = rest.mean(axis=0)
+        sign = np.where(rest[:, self.axis] > centre[self.axis], 0.5, -0.5)
+        angle = np.radians(self.degrees_per_second) * t * sign
+        u, v = [d for d in range(3) if d != self.axis]
+        du, dv = rest[:, u] - centre[u], rest[:, v] - centre[v]
+        out = rest.copy()
+        out[:, u] = centre[u] + np.cos(angle) * du - np.sin(angle) * dv
+        out[:, v] = centre[v] + np.sin(angle) * du + np.cos(angle) * dv
+        return out
+
+
+@dataclass(frozen=True)
+class Shift:
+    """Scripted motion: jump by ``offset`` (m) at the first step and stay there."""
+
+    offset: tuple = (0.0, 0.0, -0.05)
+
+    def __call__(self, t, rest):
+        return rest + (np.asarray(self.offset) if t > 0 else 0.0)
+
+
+@dataclass(frozen=True)
+class Panel:
+    """One simulated body with its own material and solver settings, drawn in its own viewport."""
+
+    label: str
+    material: solver.Material
+    mesh: object = BoxMesh()
+    iterations: int = 20
+    fixed: tuple = ()              # selectors (EndFace) of pinned vertices
+    kinematic: tuple = ()          # selectors of scripted vertices
+    motion: object = None          # callable(t, rest_positions) -> positions of the scripted vertices
+    initial_guess: solver.InitialGuess = solver.InitialGuess.ADAPTIVE
+    chebyshev_rho: float = None
+    newton_ghost: bool = False     # draw the converged Newton solution of the same step
+
+
+@dataclass(frozen=True)
+class Scene:
+    name: str
+    title: str
+    description: str
+    panels: tuple
+    camera: Camera
+    dt: float = 1.0 / 60.0
+    frames: int = 90
+    fps: int = 30
+    gravity: tuple = (0.0, 0.0, -9.81)
+    ground: solver.Ground = None
+    damping: float = 0.0
+    grid: GridPlane = None
+    colour_by: ColourBy = ColourBy.BODY
+    colour_range: tuple = (1e-5, 1e-1)    # for DISPLACEMENT / RESIDUAL, log scale
+    advance: Advance = Advance.TIME_STEPS
+    notes: tuple = field(default=())      # extra lines printed under the title
+
+
+def _material(youngs_modulus):
+    return solver.Material(youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=1000.0)
+
+
+PINNED_LEFT = (EndFace(0, Side.LOW),)
+BAR_CAMERA = Camera(eye=(0.5, -3.4, -0.25), target=(0.5, 0.0, -0.35), fov_degrees=36.0)
+BACK_WALL = GridPlane(point=(0.0, 0.4, 0.0), normal=(0.0, -1.0, 0.0), spacing=0.1)
+
+
+def _bar(label, youngs_modulus, iterations=20, mesh=BoxMesh(), ghost=True):
+    return Panel(label=label, mesh=mesh, material=_material(youngs_modulus),
+                 iterations=iterations, fixed=PINNED_LEFT, newton_ghost=ghost)
+
+
+SCENES = {scene.name: scene for scene in [
+    Scene(
+        name="stiffness_sweep",
+        title="Same solver, same 20 iterations, two stiffnesses",
+        description="Cantilever bars at E = 1e4 Pa and 1e6 Pa, dt = 1/60, 20 iterations each. "
+                    "The red ghost is the converged Newton solution of the same step: the soft bar "
+                    "tracks it, the stiff bar cannot propagate its stiffness in 20 iterations and "
+                    "sags like a much softer material.",
+        panels=(_bar("E = 1e4 Pa", 1e4), _bar("E = 1e6 Pa", 1e6)),
+        camera=BAR_CAMERA, grid=BACK_WALL, frames=60,
+        notes=("red ghost: converged Newton solution of the same time step",),
+    ),
+    Scene(
+        name="resolution_sweep",
+        title="Same stiffness and 20 iterations, coarse vs fine mesh",
+        description="E = 1e5 Pa bars meshed with 40x4x4 and 80x8x8 cells, 20 iterations each. "
+                    "Information moves about one ring of elements per iteration, so the fine mesh "
+                    "needs more iterations for the same accuracy.",
+        panels=(_bar("coarse 40x4x4 cells", 1e5), _bar("fine 80x8x8 cells", 1e5, mesh=BoxMesh(cells=(80, 8, 8)))),
+        camera=BAR_CAMERA, grid=BACK_WALL, frames=60,
+        notes=("red ghost: converged Newton solution of the same time step",),
+    ),
+    Scene(
+        name="iteration_sweep",
+        title="E = 1e6 Pa with 5, 20 and 100 iterations per step",
+        description="One stiff bar at three iteration budgets: more iterations let the stiffness "
+                    "reach further along the bar and the result approaches the Newton ghost.",
+        panels=(_bar("5 iterations", 1e6, 5), _bar("20 iterations", 1e6, 20), _bar("100 iterations", 1e6, 100)),
+        camera=Camera(eye=(0.5, -4.2, -0.25), target=(0.5, 0.0, -0.35), fov_degrees=38.0),
+        grid=BACK_WALL, frames=60,
+        notes=("red ghost: converged Newton solution of the same time step",),
+    ),
+    Scene(
+        name="propagation",
+        title="One time step, iteration by iteration",
+        description="A stiff bar (E = 1e6 Pa, no gravity) pinned on the left; its right end is moved "
+                    "down 5 cm at the start of the step. Each frame is one more VBD iteration; "
+                    "vertices are coloured by how far they have moved, so the front visibly travels "
+                    "about one ring of elements per iteration.",
+        panels=(Panel(label="E = 1e6 Pa, right end moved 5 cm", material=_material(1e6),
+                      iterations=1, fixed=PINNED_LEFT, kinematic=(EndFace(0, Side.HIGH),), motion=Shift(),
+                      initial_guess=solver.InitialGuess.PREVIOUS, newton_ghost=True),),
+        camera=Camera(eye=(0.5, -1.9, 0.25), target=(0.5, 0.0, 0.0), fov_degrees=35.0),
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=41, fps=5,
+        colour_by=ColourBy.DISPLACEMENT, colour_range=(1e-6, 5e-2), advance=Advance.ITERATIONS,
+        notes=("colour: distance moved in this step (log scale); red ghost: converged Newton step",),
+    ),
+    Scene(
+        name="colouring",
+        title="Graph colouring: vertices of one colour are solved in parallel",
+        description="Vertices that share a tet get different colours; each colour set is one parallel "
+                    "sweep of a VBD iteration. Pinned vertices (grey) are never solved.",
+        panels=(Panel(label="bar 40x4x4 cells", material=_material(1e6), fixed=PINNED_LEFT),),
+        camera=Camera(eye=(0.3, -0.9, 0.45), target=(0.5, 0.0, 0.0), fov_degrees=40.0),
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=1, fps=1, colour_by=ColourBy.COLOUR_SETS,
+    ),
+    Scene(
+        name="drop",
+        title="A soft ball dropped on the ground (penalty contact)",
+        description="A voxelised sphere (E = 1e5 Pa) falls 0.5 m onto a penalty ground plane and bounces.",
+        panels=(Panel(label="E = 1e5 Pa, 40 iterations", mesh=AssetMesh("assets/sphere.obj", resolution=10),
+                      material=_material(1e5), iterations=40),),
+        camera=Camera(eye=(0.0, -2.4, 1.0), target=(0.0, 0.0, 0.3), fov_degrees=40.0),
+        ground=solver.Ground(height=0.0, stiffness=1e5), grid=GridPlane(), frames=90,
+    ),
+    Scene(
+        name="twist",
+        title="A bar twisted by turning its ends (scripted vertices)",
+        description="Both end faces of a bar (E = 1e5 Pa, no gravity) are rotated in opposite "
+                    "directions about its axis at 90 degrees per second each.",
+        panels=(Panel(label="E = 1e5 Pa, 50 iterations", material=_material(1e5),
+                      iterations=50, kinematic=(EndFace(0, Side.LOW), EndFace(0, Side.HIGH)), motion=Twist()),),
+        camera=Camera(eye=(0.2, -1.6, 0.6), target=(0.5, 0.0, 0.05), fov_degrees=40.0),
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=120,
+    ),
+]}
+
+DEFAULT_SCENE = "stiffness_sweep"
+
+
+def get(name):
+    """The scene called ``name``; a DemoError naming the known scenes otherwise."""
+    try:
+        return SCENES[name]
+    except KeyError:
+        raise DemoError(f"unknown scene {name!r}; known scenes: {', '.join(SCENES)}") from None

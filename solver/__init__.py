@@ -1,0 +1,25 @@
+"""Vertex Block Descent for elastic tetrahedral meshes, in Taichi.
+
+Importing this package does not initialise Taichi; `Simulation` does that on first use.
+
+    import solver
+    mesh = solver.box_mesh(size=(1, .1, .1), cells=(40, 4, 4))
+    sim = solver.Simulation(mesh, solver.Material(youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0),
+                            dt=1/60, fixed=mesh.vertices[:, 0] < 1e-9, iterations=100)
+    sim.step()
+"""
+from .backend import Precision, ensure_taichi
+from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
+from .errors import ConfigError, MeshError, VBDError
+from .material import Material
+from .mesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh
+from .metrics import relative_energy_gap, relative_error
+from .newton import NewtonResult, StepProblem, newton_solve
+from .simulation import Ground, InitialGuess, IterationRecord, Simulation
+
+__all__ = [
+    "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "Material", "MeshError",
+    "NewtonResult", "Precision", "Simulation", "StepProblem", "TetMesh", "VBDError", "VertexOrder",
+    "boundary_faces", "box_mesh", "color_vertices", "ensure_taichi", "is_valid_coloring", "load_mesh",
+    "newton_solve", "relative_energy_gap", "relative_error", "save_mesh",
+]

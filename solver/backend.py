@@ -1,0 +1,62 @@
+"""Taichi initialisation and precision handling, shared by the solver and the demo renderer."""
+import warnings
+from enum import Enum
+
+import taichi as ti
+
+from .errors import ConfigError
+
+
+class Precision(Enum):
+    """Floating-point type of the simulation state."""
+
+    FLOAT64 = "float64"
+    FLOAT32 = "float32"
+
+    @property
+    def ti_dtype(self):
+        return ti.f64 if self is Precision.FLOAT64 else ti.f32
+
+
+def as_precision(value) -> Precision:
+    """Accept a ``Precision`` or its name (``"float64"``/``"float32"``)."""
+    if isinstance(value, Precision):
+        return value
+    try:
+        return Precision(str(value))
+    except ValueError:
+        raise ConfigError(f"unknown precision {value!r}; use 'float64' or 'float32'") from None
+
+
+def _initialised_arch():
+    """The arch Taichi runs on, or None when ``ti.init`` has not been called yet."""
+    from taichi.lang.impl import get_runtime
+
+    runtime = get_runtime()
+    if runtime.prog is None:
+        return None
+    return runtime.prog.config().arch
+
+
+def ensure_taichi(arch: str = "cpu") -> None:
+    """Initialise Taichi once; later calls keep whatever backend is already running.
+
+    ``arch`` is ``"cpu"`` or ``"gpu"``. ``"gpu"`` falls back to the CPU with one warning when no GPU
+    backend is available.
+    """
+    if arch not in ("cpu", "gpu"):
+        raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
+    if _initialised_arch() is not None:
+        return
+    if arch == "cpu":
+        ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)
+        return
+    from taichi.lang.misc import is_arch_supported
+
+    for gpu in (ti.cuda, ti.vulkan):
+        if is_arch_supported(gpu):
+            ti.init(arch=gpu, default_fp=ti.f64, log_level=ti.WARN)
+            return
+    warnings.warn("no GPU backend (CUDA or Vulkan) is available here; running on the CPU instead",
+                  stacklevel=2)
+    ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)

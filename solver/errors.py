@@ -1,0 +1,17 @@
+"""The project's own exception types.
+
+Every problem a user can cause (a bad mesh file, a nonsense parameter) raises one of these with a
+one-line message that names the problem and the fix, so a CLI can print ``str(err)`` and exit.
+"""
+
+
+class VBDError(Exception):
+    """Base class of every error this project raises on purpose."""
+
+
+class MeshError(VBDError, ValueError):
+    """A mesh that cannot be simulated: missing/unreadable file, no tets, bad indices or geometry."""
+
+
+class ConfigError(VBDError, ValueError):
+    """A parameter outside its meaningful range (negative time step, Poisson ratio >= 0.5, ...)."""
