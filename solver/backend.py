@@ -41,8 +41,8 @@ def _initialised_arch():
 def ensure_taichi(arch: str = "cpu") -> None:
     """Initialise Taichi once; later calls keep whatever backend is already running.
 
-    ``arch`` is ``"cpu"`` or ``"gpu"``. ``"gpu"`` falls back to the CPU with one warning when no GPU
-    backend is available.
+    ``arch`` is ``"cpu"`` or ``"gpu"`` (CUDA, which supports float64). ``"gpu"`` falls back to the
+    CPU with one warning when no CUDA GPU is available.
     """
     if arch not in ("cpu", "gpu"):
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
@@ -53,10 +53,9 @@ def ensure_taichi(arch: str = "cpu") -> None:
         return
     from taichi.lang.misc import is_arch_supported
 
-    for gpu in (ti.cuda, ti.vulkan):
-        if is_arch_supported(gpu):
-            ti.init(arch=gpu, default_fp=ti.f64, log_level=ti.WARN)
-            return
-    warnings.warn("no GPU backend (CUDA or Vulkan) is available here; running on the CPU instead",
-                  stacklevel=2)
+    ti.set_logging_level(ti.ERROR)   # keep the CUDA probe quiet; our own warning says what happened
+    if is_arch_supported(ti.cuda):
+        ti.init(arch=ti.cuda, default_fp=ti.f64, log_level=ti.WARN)
+        return
+    warnings.warn("no CUDA GPU is available here; running on the CPU instead", stacklevel=3)
     ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)

@@ -15,6 +15,7 @@ import taichi as ti
 
 from .backend import ensure_taichi
 from .errors import MeshError
+from .todo import require_implemented
 from .topology import vertex_neighbours
 
 MAX_COLORS = 64
@@ -49,7 +50,7 @@ def _greedy(offsets: ti.types.ndarray(), neighbours: ti.types.ndarray(), order: 
     n_colors = 0
     ti.loop_config(serialize=True)
     for k in range(order.shape[0]):
-        # BEGIN SOLUTION
+        # BEGIN SOLUTION task=coloring
         v = order[k]
         used = ti.u64(0)
         for e in range(offsets[v], offsets[v + 1]):
@@ -81,6 +82,7 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
 
     key: a hash of the connectivity (`TetMesh.topology_key()`); when given, results are cached.
     """
+    require_implemented(_greedy)
     cache_key = f"{key}-{order.value}" if key else None
     if cache_key in _memory_cache:
         return _memory_cache[cache_key]

@@ -98,7 +98,7 @@ def vertex_force_hessian(Fm, J, w, m_sq, vol, mu, lam):
     H_i = vol (mu |m|^2 I + lam w w^T), which is exact (J is affine in x_i, so d2J/dx_i2 = 0) and
     symmetric positive definite whenever m != 0 (lecture notes, chapter 3).
     """
-    # BEGIN SOLUTION
+    # BEGIN SOLUTION task=force_hessian
     alpha = 1.0 + mu / lam
     f = -vol * (mu * Fm + lam * (J - alpha) * w)
     H = vol * (ti.Matrix.diag(3, mu * m_sq) + lam * w.outer_product(w))

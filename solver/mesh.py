@@ -4,7 +4,9 @@ Everything here is one-off preprocessing in vectorised numpy; nothing runs insid
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import io
 import os
 from dataclasses import dataclass, field
 
@@ -202,9 +204,10 @@ def load_mesh(path, resolution: int = 16) -> TetMesh:
     import meshio
 
     try:
-        raw = meshio.read(path)
-    except Exception as err:  # meshio raises many types for unreadable input
-        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+            raw = meshio.read(path)
+    except (Exception, SystemExit) as err:  # meshio raises many types, even SystemExit, on bad input
+        reason = str(err).splitlines()[0] if str(err) and not isinstance(err, SystemExit) else "unknown format"
         raise MeshError(f"{path}: cannot read this file ({reason}); use a format meshio reads, "
                         "e.g. .msh, .vtu, .vtk, .mesh or TetGen .node/.ele") from None
     blocks = [c.data for c in raw.cells if c.type in ("tetra", "tetra10")]

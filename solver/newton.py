@@ -76,11 +76,14 @@ class StepProblem:
         g[~self.free] = 0.0
         return g
 
-    def hessian(self, x: np.ndarray) -> sp.csr_matrix:
-        """(3N, 3N) sparse d2G/dx2 with every tet's stress Hessian projected to PSD."""
+    def hessian(self, x: np.ndarray, project: bool = True) -> sp.csr_matrix:
+        """(3N, 3N) sparse d2G/dx2; with `project`, every tet's 9x9 stress Hessian dP/dF is
+        projected to positive semi-definite (negative eigenvalues clamped to 0) first."""
         A = d2psi_dF2_np(self.deformation_gradients(x), self.mu, self.lam).reshape(-1, 9, 9)
-        lam_, Q = np.linalg.eigh(0.5 * (A + A.transpose(0, 2, 1)))
-        A = np.einsum("tij,tj,tkj->tik", Q, np.maximum(lam_, 0.0), Q).reshape(-1, 3, 3, 3, 3)
+        if project:
+            lam_, Q = np.linalg.eigh(0.5 * (A + A.transpose(0, 2, 1)))
+            A = np.einsum("tij,tj,tkj->tik", Q, np.maximum(lam_, 0.0), Q)
+        A = A.reshape(-1, 3, 3, 3, 3)
         blocks = self.volumes[:, None, None, None, None] * np.einsum(
             "tabcd,tkb,tld->tkalc", A, self.grad_rows, self.grad_rows)
         dof = 3 * self.tets[:, :, None] + np.arange(3)                      # (M, 4, 3)

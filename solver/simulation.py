@@ -25,6 +25,7 @@ from .coloring import Coloring, VertexOrder, color_vertices
 from .errors import ConfigError
 from .material import Material, psi, vertex_force_hessian
 from .mesh import TetMesh
+from .todo import require_implemented
 from .topology import vertex_tet_adjacency
 
 
@@ -166,6 +167,9 @@ class Simulation:
             raise ConfigError("every vertex is fixed or kinematic; nothing is left to simulate")
         ensure_taichi(arch)
 
+        require_implemented(vertex_force_hessian, Simulation._force_hessian, Simulation._solve_vertex)
+        if chebyshev_rho is not None:
+            require_implemented(Simulation._chebyshev_omega, Simulation._chebyshev)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
         self._build_fields()
         self.history: list[IterationRecord] = []
@@ -190,6 +194,7 @@ class Simulation:
         self.mass = ti.field(dtype, n)               # lumped masses m_i
         self.free = ti.field(ti.i32, n)              # 1 for vertices VBD solves
         self.f = ti.Vector.field(3, dtype, n)        # residual f_i, filled on request
+        self.H = ti.Matrix.field(3, 3, dtype, n)     # local Hessian H_i, filled on request
         self.tets = ti.Vector.field(4, ti.i32, m)
         self.Dm_inv = ti.Matrix.field(3, 3, dtype, m)
         self.vol = ti.field(dtype, m)
@@ -400,9 +405,11 @@ class Simulation:
 
     def _chebyshev_omega(self, k: int, omega_prev: float) -> float:
         """Chebyshev weight omega_k (VBD Eq. 19): 1, 2/(2 - rho^2), 4/(4 - rho^2 omega_{k-1})."""
-        # BEGIN SOLUTION
         rho = self.chebyshev_rho
-        if rho is None or k == 1:
+        if rho is None:
+            return 1.0
+        # BEGIN SOLUTION task=chebyshev
+        if k == 1:
             return 1.0
         if k == 2:
             return 2.0 / (2.0 - rho * rho)
@@ -487,6 +494,7 @@ class Simulation:
         i = self.color_order[k]
         h = self.h[None]
         mu, lam = self.mu[None], self.lam[None]
+        # BEGIN SOLUTION task=vbd_sweep
         m_h2 = self.mass[i] / (h * h)
         f = m_h2 * (self.y[i] - self.x[i])
         H = ti.Matrix.diag(3, m_h2)
@@ -499,6 +507,7 @@ class Simulation:
             H_el += dH
         f += f_el
         H += H_el
+        # END SOLUTION
         if ti.static(self.damping > 0):
             k_d = ti.static(self.damping)
             f -= (k_d / h) * (H_el @ (self.x[i] - self.x_n[i]))
@@ -529,7 +538,7 @@ class Simulation:
     def _solve_vertex(self, k):
         """x_i <- x_i + H_i^-1 f_i for the vertex i in colour slot k, skipping a (near) singular H_i
         (VBD Alg. 1, lines 7-10)."""
-        # BEGIN SOLUTION
+        # BEGIN SOLUTION task=vbd_sweep
         i = self.color_order[k]
         f, H = self._force_hessian(k)
         det = H.determinant()
@@ -556,7 +565,7 @@ class Simulation:
         """x = omega (x - x^(k-2)) + x^(k-2) for the free vertices (VBD Eq. 18)."""
         for k in self.color_order:
             i = self.color_order[k]
-            # BEGIN SOLUTION
+            # BEGIN SOLUTION task=chebyshev
             x_accel = ti.cast(omega, self.dtype) * (self.x[i] - self.x_prev2[i]) + self.x_prev2[i]
             self.x_prev2[i] = self.x_prev[i]
             self.x_prev[i] = x_accel
@@ -589,6 +598,16 @@ class Simulation:
         return result
 
     @ti.kernel
+    def _compute_local_systems(self):
+        for i in self.f:
+            self.f[i] = ti.Vector.zero(self.dtype, 3)
+            self.H[i] = ti.Matrix.zero(self.dtype, 3, 3)
+        for k in self.color_order:
+            f, H = self._force_hessian(k)
+            self.f[self.color_order[k]] = f
+            self.H[self.color_order[k]] = H
+
+    @ti.kernel
     def _energy(self) -> ti.f64:
         G = ti.cast(0.0, ti.f64)
         h = self.h[None]
@@ -618,6 +637,12 @@ class Simulation:
         """(N, 3) float64 per-vertex force residual f_i = -dG/dx_i (0 at fixed/kinematic vertices)."""
         self._compute_residual()
         return self.f.to_numpy().astype(np.float64)
+
+    def local_systems(self):
+        """Per-vertex f_i (N, 3) and H_i (N, 3, 3) at the current positions (zero at constrained
+        vertices): the 3x3 system each vertex solves, for plots and tests."""
+        self._compute_local_systems()
+        return self.f.to_numpy().astype(np.float64), self.H.to_numpy().astype(np.float64)
 
     def max_residual(self) -> float:
         """max_i |f_i| in newtons."""

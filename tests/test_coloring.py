@@ -1,0 +1,53 @@
+"""Greedy colouring: valid, deterministic, reported, and cached per mesh."""
+import numpy as np
+import pytest
+
+import solver
+
+
+@pytest.mark.parametrize("order", list(solver.VertexOrder))
+def test_coloring_is_valid_and_deterministic(order):
+    mesh = solver.box_mesh(cells=(12, 3, 3))
+    a = solver.color_vertices(mesh.tets, mesh.n_vertices, order)
+    b = solver.color_vertices(mesh.tets, mesh.n_vertices, order)
+    assert solver.is_valid_coloring(mesh.tets, a.colors)
+    np.testing.assert_array_equal(a.colors, b.colors)
+    assert a.sizes.sum() == mesh.n_vertices
+    assert a.n_colors == len(a.sizes)
+    # A tet needs 4 colours; Kuhn-split boxes need more since neighbouring tets chain up.
+    assert 4 <= a.n_colors <= 16
+
+
+def test_invalid_colorings_are_detected():
+    mesh = solver.box_mesh(cells=(3, 1, 1))
+    colors = solver.color_vertices(mesh.tets, mesh.n_vertices).colors.copy()
+    t = mesh.tets[0]
+    colors[t[1]] = colors[t[0]]
+    assert not solver.is_valid_coloring(mesh.tets, colors)
+    colors[:] = -1
+    assert not solver.is_valid_coloring(mesh.tets, colors)
+
+
+def test_coloring_is_cached_per_connectivity(monkeypatch, tmp_path):
+    monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
+    mesh = solver.box_mesh(cells=(7, 3, 2))
+    key = mesh.topology_key()
+    first = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)
+    again = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)
+    assert not first.cached and again.cached and again.seconds == 0.0
+    np.testing.assert_array_equal(first.colors, again.colors)
+    assert list(tmp_path.glob("colors-*.npy")), "a disk cache file is written"
+    # Moving vertices does not change the key; changing connectivity does.
+    moved = solver.TetMesh(mesh.vertices * 2.0, mesh.tets)
+    assert moved.topology_key() == key
+    assert solver.box_mesh(cells=(7, 3, 3)).topology_key() != key
+
+
+def test_simulation_leaves_fixed_vertices_out_of_the_colour_sets():
+    mesh = solver.box_mesh(cells=(6, 2, 2))
+    fixed = mesh.vertices[:, 0] < 1e-9
+    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), fixed=fixed, iterations=1)
+    assert (sim.colors[fixed] == -1).all()
+    assert (sim.colors[~fixed] >= 0).all()
+    assert sim.color_order.to_numpy().size == (~fixed).sum()
+    assert sim.n_colors == len(np.unique(sim.colors[~fixed]))

@@ -1,0 +1,145 @@
+"""Meshes: generators, every supported file format, boundary extraction, and every kind of bad input."""
+import meshio
+import numpy as np
+import pytest
+import trimesh
+
+import solver
+from solver.mesh import signed_volumes
+
+
+def test_box_mesh_is_conforming_positive_and_fills_the_box():
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.2), cells=(10, 2, 3))
+    assert mesh.n_tets == 6 * 10 * 2 * 3
+    assert mesh.n_vertices == 11 * 3 * 4
+    vol = mesh.rest_volumes()
+    assert (vol > 0).all()
+    assert vol.sum() == pytest.approx(1.0 * 0.1 * 0.2)
+    # Conforming: every interior face is shared by exactly two tets, so the boundary is exactly the
+    # box surface: 2 triangles per boundary quad.
+    faces = mesh.boundary_faces()
+    assert len(faces) == 2 * 2 * (10 * 2 + 10 * 3 + 2 * 3)
+
+
+def test_boundary_faces_point_outward():
+    mesh = solver.box_mesh(size=(1.0, 1.0, 1.0), cells=(3, 3, 3))
+    x = mesh.vertices
+    f = mesh.boundary_faces()
+    normals = np.cross(x[f[:, 1]] - x[f[:, 0]], x[f[:, 2]] - x[f[:, 0]])
+    centroid = x[f].mean(axis=1)
+    assert ((normals * (centroid - 0.5)).sum(axis=1) > 0).all()
+    # Divergence theorem: sum over faces of (centroid . area normal) / 3 = volume.
+    assert (centroid * normals / 2).sum() / 3 == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".vtu", ".vtk", ".mesh"])
+def test_volume_formats_round_trip(tmp_path, suffix):
+    mesh = solver.box_mesh(cells=(4, 2, 2))
+    path = tmp_path / f"bar{suffix}"
+    solver.save_mesh(mesh, path)
+    loaded = solver.load_mesh(path)
+    np.testing.assert_allclose(loaded.vertices, mesh.vertices)
+    np.testing.assert_array_equal(loaded.tets, mesh.tets)
+
+
+def test_tetgen_node_ele_files(tmp_path):
+    mesh = solver.box_mesh(cells=(3, 1, 1))
+    meshio.write(tmp_path / "bar.node", meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), file_format="tetgen")
+    loaded = solver.load_mesh(tmp_path / "bar.node")
+    assert loaded.n_tets == mesh.n_tets
+    assert loaded.rest_volumes().sum() == pytest.approx(mesh.rest_volumes().sum())
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".stl", ".ply", ".off"])
+def test_closed_surfaces_are_tetrahedralised(tmp_path, suffix):
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    path = tmp_path / f"sphere{suffix}"
+    sphere.export(path)
+    mesh = solver.load_mesh(path, resolution=10)
+    assert (mesh.rest_volumes() > 0).all()
+    # Voxel volume converges to the sphere's volume; at 10 voxels across it is within 15 %.
+    assert mesh.rest_volumes().sum() == pytest.approx(sphere.volume, rel=0.15)
+    finer = solver.load_mesh(path, resolution=20)
+    assert abs(finer.rest_volumes().sum() - sphere.volume) < abs(mesh.rest_volumes().sum() - sphere.volume)
+
+
+def test_save_surface_formats_write_the_boundary(tmp_path):
+    mesh = solver.box_mesh(cells=(2, 2, 2))
+    solver.save_mesh(mesh, tmp_path / "box.obj")
+    surface = trimesh.load(tmp_path / "box.obj", force="mesh")
+    assert surface.is_watertight
+    assert surface.volume == pytest.approx(mesh.rest_volumes().sum())
+
+
+def test_all_negative_orientation_is_flipped_and_unreferenced_vertices_dropped():
+    mesh = solver.box_mesh(cells=(2, 1, 1))
+    flipped = mesh.tets[:, [0, 2, 1, 3]]
+    extra = np.vstack([mesh.vertices, [[9.0, 9.0, 9.0]]])
+    moved = np.vstack([[[5.0, 5.0, 5.0]], extra])            # unreferenced vertex first
+    fixed = solver.TetMesh(moved, flipped + 1)
+    assert (fixed.rest_volumes() > 0).all()
+    assert fixed.n_vertices == mesh.n_vertices
+    np.testing.assert_array_equal(fixed.original_index, np.arange(1, mesh.n_vertices + 1))
+
+
+def _bad(vertices, tets, match):
+    with pytest.raises(solver.MeshError, match=match):
+        solver.TetMesh(vertices, tets)
+
+
+def test_bad_meshes_raise_mesh_error():
+    mesh = solver.box_mesh(cells=(2, 1, 1))
+    X, T = mesh.vertices, mesh.tets
+    _bad(X, np.zeros((0, 4), int), "no tetrahedra")
+    _bad(X, T + 100, "out of range")
+    _bad(X, np.vstack([T, [[-1, 0, 1, 2]]]), "out of range")
+    nan = X.copy()
+    nan[3, 1] = np.nan
+    _bad(nan, T, "NaN")
+    inf = X.copy()
+    inf[0, 0] = np.inf
+    _bad(inf, T, "NaN or infinite")
+    flat = X.copy()
+    flat[:, 2] = 0.0
+    _bad(flat, T, "zero volume")
+    mixed = T.copy()
+    mixed[0] = mixed[0, [0, 2, 1, 3]]
+    _bad(X, mixed, "inverted")
+    _bad(X, np.vstack([T, T[:1, [1, 0, 2, 3]]]), "duplicate")
+    _bad(X, np.vstack([T, [[0, 0, 1, 2]]]), "twice")
+    _bad(X[:, :2], T, r"\(N, 3\)")
+    _bad(X, T.astype(float), "integers")
+
+
+def test_bad_files_raise_mesh_error_with_the_path(tmp_path):
+    with pytest.raises(solver.MeshError, match="not found"):
+        solver.load_mesh(tmp_path / "missing.msh")
+    garbage = tmp_path / "garbage.msh"
+    garbage.write_bytes(b"\x00\x01 this is not a mesh")
+    with pytest.raises(solver.MeshError, match="cannot read"):
+        solver.load_mesh(garbage)
+    surface_only = tmp_path / "surface.vtk"
+    sphere = trimesh.creation.icosphere(subdivisions=1)
+    meshio.write(surface_only, meshio.Mesh(sphere.vertices, [("triangle", sphere.faces)]))
+    with pytest.raises(solver.MeshError, match="no tetrahedra"):
+        solver.load_mesh(surface_only)
+    open_surface = tmp_path / "open.obj"
+    trimesh.Trimesh(sphere.vertices, sphere.faces[:-3]).export(open_surface)
+    with pytest.raises(solver.MeshError, match="not closed"):
+        solver.load_mesh(open_surface)
+    with pytest.raises(solver.MeshError, match="folder"):
+        solver.load_mesh(tmp_path)
+    with pytest.raises(solver.MeshError, match="resolution"):
+        solver.load_mesh(_closed(tmp_path), resolution=0)
+
+
+def _closed(tmp_path):
+    path = tmp_path / "closed.obj"
+    trimesh.creation.box().export(path)
+    return path
+
+
+def test_signed_volume_helper():
+    X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
+    assert signed_volumes(X, np.array([[0, 1, 2, 3]]))[0] == pytest.approx(1 / 6)
+    assert signed_volumes(X, np.array([[0, 2, 1, 3]]))[0] == pytest.approx(-1 / 6)
