@@ -142,6 +142,6 @@ def d2psi_dF2_np(F: np.ndarray, mu: float, lam: float) -> np.ndarray:
     C = cofactor_np(F)
     J = np.linalg.det(F)
     eye = np.einsum("ac,bd->abcd", np.eye(3), np.eye(3))
-    d2J = np.einsum("ace,bdf,...ef->...abcd", _LEVI_CIVITA, _LEVI_CIVITA, F)
+    d2J = np.einsum("ace,bdf,...ef->...abcd", _LEVI_CIVITA, _LEVI_CIVITA, F, optimize=True)
     return (mu * eye + lam * np.einsum("...ab,...cd->...abcd", C, C)
             + lam * (J - alpha)[..., None, None, None, None] * d2J)

@@ -83,12 +83,15 @@ class StepProblem:
         if project:
             lam_, Q = np.linalg.eigh(0.5 * (A + A.transpose(0, 2, 1)))
             A = np.einsum("tij,tj,tkj->tik", Q, np.maximum(lam_, 0.0), Q)
-        A = A.reshape(-1, 3, 3, 3, 3)
-        blocks = self.volumes[:, None, None, None, None] * np.einsum(
-            "tabcd,tkb,tld->tkalc", A, self.grad_rows, self.grad_rows)
-        dof = 3 * self.tets[:, :, None] + np.arange(3)                      # (M, 4, 3)
-        rows = np.broadcast_to(dof[:, :, :, None, None], blocks.shape).ravel()
-        cols = np.broadcast_to(dof[:, None, None, :, :], blocks.shape).ravel()
+        # dF/dx as a (M, 9, 12) matrix: dF_ab / dx_kc = delta_ac m_kb, then blocks = vol B^T A B.
+        B = np.zeros((len(A), 3, 3, 4, 3))
+        for a in range(3):
+            B[:, a, :, :, a] = self.grad_rows.transpose(0, 2, 1)
+        B = B.reshape(-1, 9, 12)
+        blocks = self.volumes[:, None, None] * (B.transpose(0, 2, 1) @ A @ B)
+        dof = (3 * self.tets[:, :, None] + np.arange(3)).reshape(-1, 12)      # (M, 12)
+        rows = np.broadcast_to(dof[:, :, None], blocks.shape).ravel()
+        cols = np.broadcast_to(dof[:, None, :], blocks.shape).ravel()
         n = 3 * len(x)
         diag = np.repeat(self.masses / self.h ** 2, 3)
         if self.ground is not None:

@@ -12,7 +12,6 @@ on its local energy (lecture notes, chapter 3). The loop reads like the lecture:
              v = (x - x_n) / h                           (end_step)
 """
 
-import time
 from dataclasses import dataclass
 from enum import Enum
 from typing import Callable, Optional
@@ -20,7 +19,7 @@ from typing import Callable, Optional
 import numpy as np
 import taichi as ti
 
-from .backend import Precision, as_precision, ensure_taichi
+from .backend import as_precision, ensure_taichi
 from .coloring import Coloring, VertexOrder, color_vertices
 from .errors import ConfigError
 from .material import Material, psi, vertex_force_hessian
@@ -670,12 +669,15 @@ class Simulation:
                            constrained_positions=targets, h=self._dt, mu=self.material.mu,
                            lam=self.material.lam, ground=self.ground)
 
-    def newton_reference(self, tolerance: float = 1e-10, max_iterations: int = 50) -> np.ndarray:
+    def newton_reference(self, tolerance: float = 1e-10, max_iterations: int = 50, x0=None) -> np.ndarray:
         """(N, 3) converged global Newton solution x* of the next step, from the current state.
 
-        The simulation itself is not changed.
+        x0: (N, 3) start of the Newton iterations (default y); the simulation itself is not changed.
+        To measure a VBD step cheaply, build `problem = sim.step_problem()` before `sim.step()` and
+        warm-start `solver.newton_solve(problem, sim.positions)` after it.
         """
         from .newton import newton_solve
 
         problem = self.step_problem()
-        return newton_solve(problem, problem.y_with_constraints(), tolerance, max_iterations).x
+        start = problem.y_with_constraints() if x0 is None else self._checked_state(x0, "x0")
+        return newton_solve(problem, start, tolerance, max_iterations).x
