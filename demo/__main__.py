@@ -63,7 +63,7 @@ def build_parser():
     render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     render.add_argument("--frames", type=_positive, default=None, help="number of frames (default: the scene's own)")
     render.add_argument("--out", type=Path, default=None, help="output folder (default: out/SCENE)")
-    render.add_argument("--size", type=_size, default=(1280, 720), metavar="WxH", help="image size in pixels")
+    render.add_argument("--size", type=_size, default="1280x720", metavar="WxH", help="image size in pixels")
     render.add_argument("--fps", type=_positive, default=None, help="video frame rate (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
@@ -75,7 +75,7 @@ def build_parser():
                                  formatter_class=formatter)
     interactive.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
-    interactive.add_argument("--size", type=_size, default=(1280, 720), metavar="WxH", help="window size in pixels")
+    interactive.add_argument("--size", type=_size, default="1280x720", metavar="WxH", help="window size in pixels")
 
     sub.add_parser("homework", help="homework tools (python -m demo homework --help)", add_help=False)
     sub.add_parser("figures", help="lecture figures (python -m demo figures --help)", add_help=False)
@@ -185,6 +185,11 @@ def main(argv=None):
     except solver.VBDError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except NotImplementedError as e:
+        from .homework import describe_not_implemented
+
+        print(describe_not_implemented(e), file=sys.stderr)
+        return 3
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

@@ -70,13 +70,40 @@ BACKGROUND_BOTTOM = (0.78, 0.80, 0.84)
 GRID_COLOUR = (0.55, 0.57, 0.62)
 GHOST_COLOUR = (0.95, 0.35, 0.25)
 GHOST_ALPHA = 0.35
-LIGHT_DIRECTION = np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76])
+LIGHT_DIRECTION_TUPLE = tuple(float(v) for v in np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76]))
 
 
 @ti.kernel
 def _clear(key: ti.types.ndarray(dtype=ti.i64, ndim=2), x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
     for r, c in ti.ndrange((y0, y1), (x0, x1)):
         key[r, c] = ti.i64(9223372036854775807)
+
+
+@ti.kernel
+def _project(positions: ti.types.ndarray(dtype=ti.f64, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
+             frame: ti.types.ndarray(dtype=ti.f32, ndim=2), focal: ti.f32, cx: ti.f32, cy: ti.f32,
+             screen: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1)):
+    """Screen (column, row, view depth) per vertex and a light factor per face."""
+    eye = ti.Vector([frame[3, 0], frame[3, 1], frame[3, 2]])
+    right = ti.Vector([frame[0, 0], frame[0, 1], frame[0, 2]])
+    up = ti.Vector([frame[1, 0], frame[1, 1], frame[1, 2]])
+    forward = ti.Vector([frame[2, 0], frame[2, 1], frame[2, 2]])
+    for v in range(positions.shape[0]):
+        d = ti.Vector([positions[v, 0], positions[v, 1], positions[v, 2]], ti.f32) - eye
+        z = d.dot(forward)
+        screen[v, 0] = ti.cast(cx + focal * d.dot(right) / ti.max(z, 1e-9), ti.f32)
+        screen[v, 1] = ti.cast(cy - focal * d.dot(up) / ti.max(z, 1e-9), ti.f32)
+        screen[v, 2] = z
+    sun = ti.Vector(LIGHT_DIRECTION_TUPLE)
+    for f in range(faces.shape[0]):
+        p0 = ti.Vector([positions[faces[f, 0], j] for j in ti.static(range(3))], ti.f32)
+        p1 = ti.Vector([positions[faces[f, 1], j] for j in ti.static(range(3))], ti.f32)
+        p2 = ti.Vector([positions[faces[f, 2], j] for j in ti.static(range(3))], ti.f32)
+        n = (p1 - p0).cross(p2 - p0)
+        n = ti.cast(n / ti.max(n.norm(), 1e-30), ti.f32)
+        if n.dot(eye - (p0 + p1 + p2) / 3.0) < 0.0:     # light both sides: face the camera
+            n = -n
+        light[f] = ti.cast(0.30 + 0.45 * ti.max(n.dot(sun), 0.0) + 0.30 * ti.max(-n.dot(forward), 0.0), ti.f32)
 
 
 @ti.func
@@ -155,6 +182,7 @@ def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), key: ti.types.ndarray(d
         rgb = ti.Vector([BACKGROUND_TOP[0], BACKGROUND_TOP[1], BACKGROUND_TOP[2]]) * (1.0 - t) + \
             ti.Vector([BACKGROUND_BOTTOM[0], BACKGROUND_BOTTOM[1], BACKGROUND_BOTTOM[2]]) * t
         k = key[r, c]
+        key[r, c] = empty    # ready for the next draw
         mesh_depth = 3.0e38
         if k != empty:
             mesh_depth = _decode_depth(k)
@@ -176,7 +204,7 @@ def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), key: ti.types.ndarray(d
                             u = hit[d] / spacing
                             dist = ti.abs(u - ti.round(u)) * spacing
                             line = ti.max(line, ti.max(0.0, 1.0 - dist / width))
-                    fade = ti.exp(-0.25 * s)
+                    fade = 1.0 / (1.0 + 0.3 * s)
                     rgb = rgb * (1.0 - 0.6 * line * fade) + ti.Vector(GRID_COLOUR) * (0.6 * line * fade)
         if k != empty:
             f = ti.cast(k & ti.i64(0xFFFFFFFF), ti.i32)
@@ -233,8 +261,10 @@ class Renderer:
         self.width, self.height = int(width), int(height)
         self._key = ti.ndarray(ti.i64, shape=(self.height, self.width))
         self._ghost_key = ti.ndarray(ti.i64, shape=(self.height, self.width))
-        self._image = ti.ndarray(ti.u8, shape=(self.height, self.width, 3))
-        self._no_faces = np.zeros((0, 3), np.int32)
+        # a NumPy image is written in place by the CPU backend (no copy back)
+        self._image = np.zeros((self.height, self.width, 3), np.uint8)
+        self._scratch = {}
+        _clear(self._key, 0, 0, self.width, self.height)
         self._no_light = np.zeros(1, np.float32)
         self._no_grid = np.zeros(7, np.float32)
 
@@ -248,16 +278,18 @@ class Renderer:
         centre = (vp.x + 0.5 * vp.width, vp.y + 0.5 * vp.height)
         faces = np.ascontiguousarray(body.faces, dtype=np.int32)
 
-        screen, light = self._project(body.positions, faces, basis, eye, focal, centre)
-        _clear(self._key, *box)
+        frame = np.vstack([basis, eye]).astype(np.float32)
+        screen, light = self._buffers("body", len(body.positions), len(faces))
+        _project(np.ascontiguousarray(body.positions, dtype=np.float64), faces, frame, focal, *centre, screen, light)
         _rasterise(screen, faces, self._key, *box)
         has_ghost = body.ghost_positions is not None
         ghost_light = self._no_light
         if has_ghost:
-            ghost_screen, ghost_light = self._project(body.ghost_positions, faces, basis, eye, focal, centre)
+            ghost_screen, ghost_light = self._buffers("ghost", len(body.ghost_positions), len(faces))
+            _project(np.ascontiguousarray(body.ghost_positions, dtype=np.float64), faces, frame, focal, *centre,
+                     ghost_screen, ghost_light)
             _clear(self._ghost_key, *box)
             _rasterise(ghost_screen, faces, self._ghost_key, *box)
-        frame = np.vstack([basis, eye]).astype(np.float32)
         grid_data = self._no_grid
         if grid is not None:
             normal = np.asarray(grid.normal, float) / np.linalg.norm(grid.normal)
@@ -268,25 +300,13 @@ class Renderer:
                int(body.nearest_vertex), *box)
 
     def image(self):
-        """The current image as an (height, width, 3) uint8 array."""
-        return self._image.to_numpy()
+        """A copy of the current image as an (height, width, 3) uint8 array."""
+        return self._image.copy()
 
-    @staticmethod
-    def _project(positions, faces, basis, eye, focal, centre):
-        """Screen coordinates (column, row, view depth) per vertex and a light factor per face."""
-        view = (np.asarray(positions, float) - eye) @ basis.T
-        depth = np.maximum(view[:, 2], 1e-9)
-        screen = np.empty((len(view), 3), np.float32)
-        screen[:, 0] = centre[0] + focal * view[:, 0] / depth
-        screen[:, 1] = centre[1] - focal * view[:, 1] / depth
-        screen[:, 2] = view[:, 2]
-        p = np.asarray(positions, float)[faces]
-        normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-30)
-        # light both sides: turn every normal towards the camera
-        to_eye = eye - p.mean(axis=1)
-        normal *= np.where(np.einsum("ij,ij->i", normal, to_eye) < 0, -1.0, 1.0)[:, None]
-        diffuse = np.clip(normal @ LIGHT_DIRECTION, 0.0, 1.0)
-        head = np.clip(normal @ -basis[2], 0.0, 1.0)
-        light = (0.30 + 0.45 * diffuse + 0.30 * head).astype(np.float32)
+    def _buffers(self, name, n_vertices, n_faces):
+        """Per-vertex screen and per-face light arrays, reused while the mesh size stays the same."""
+        screen, light = self._scratch.get(name, (None, None))
+        if screen is None or len(screen) != n_vertices or len(light) != n_faces:
+            screen, light = np.empty((n_vertices, 3), np.float32), np.empty(n_faces, np.float32)
+            self._scratch[name] = (screen, light)
         return screen, light

@@ -8,6 +8,9 @@ import solver
 from . import colours
 from .scenes import Advance, ColourBy
 
+# Newton steps below 1e-7 of the body size: x* to about a micrometre, far below what a frame shows
+NEWTON_TOLERANCE = 1e-7
+
 
 @dataclass
 class PanelState:
@@ -53,7 +56,7 @@ class PanelSim:
         """One full time step, measured against the Newton reference when the panel shows one."""
         self.finish_step()
         self.start = self.sim.positions
-        self.ghost = self.sim.newton_reference() if self.ghost_enabled else None
+        self.ghost = self.sim.newton_reference(tolerance=NEWTON_TOLERANCE) if self.ghost_enabled else None
         self.sim.step()
         self.iteration = self.sim.iterations
         self._measure()
@@ -62,7 +65,7 @@ class PanelSim:
         """``count`` more iterations of the current time step (opening one if needed)."""
         if not self.in_step:
             self.start = self.sim.positions
-            self.ghost = self.sim.newton_reference() if self.ghost_enabled else None
+            self.ghost = self.sim.newton_reference(tolerance=NEWTON_TOLERANCE) if self.ghost_enabled else None
             self.sim.begin_step()
             self.iteration = 0
             self.in_step = True

@@ -156,7 +156,7 @@ def _material(youngs_modulus):
 
 
 PINNED_LEFT = (EndFace(0, Side.LOW),)
-BAR_CAMERA = Camera(eye=(0.5, -3.4, -0.25), target=(0.5, 0.0, -0.35), fov_degrees=36.0)
+BAR_CAMERA = Camera(eye=(0.45, -4.2, -0.45), target=(0.45, 0.0, -0.45), fov_degrees=36.0)
 BACK_WALL = GridPlane(point=(0.0, 0.4, 0.0), normal=(0.0, -1.0, 0.0), spacing=0.1)
 
 
@@ -174,7 +174,7 @@ SCENES = {scene.name: scene for scene in [
                     "tracks it, the stiff bar cannot propagate its stiffness in 20 iterations and "
                     "sags like a much softer material.",
         panels=(_bar("E = 1e4 Pa", 1e4), _bar("E = 1e6 Pa", 1e6)),
-        camera=BAR_CAMERA, grid=BACK_WALL, frames=60,
+        camera=BAR_CAMERA, grid=BACK_WALL, frames=30,
         notes=("red ghost: converged Newton solution of the same time step",),
     ),
     Scene(
@@ -184,7 +184,7 @@ SCENES = {scene.name: scene for scene in [
                     "Information moves about one ring of elements per iteration, so the fine mesh "
                     "needs more iterations for the same accuracy.",
         panels=(_bar("coarse 40x4x4 cells", 1e5), _bar("fine 80x8x8 cells", 1e5, mesh=BoxMesh(cells=(80, 8, 8)))),
-        camera=BAR_CAMERA, grid=BACK_WALL, frames=60,
+        camera=BAR_CAMERA, grid=BACK_WALL, frames=30,
         notes=("red ghost: converged Newton solution of the same time step",),
     ),
     Scene(

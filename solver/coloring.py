@@ -45,7 +45,7 @@ def _greedy(offsets: ti.types.ndarray(), neighbours: ti.types.ndarray(), order: 
             colors: ti.types.ndarray()) -> ti.i32:
     """Visit vertices in `order`; give each the smallest colour no coloured neighbour has.
 
-    colors must start at -1. Returns the number of colours, or -1 if a vertex needed more than 64.
+    colors must start at -1. Returns the number of colours; more than 64 means the colouring failed.
     """
     n_colors = 0
     ti.loop_config(serialize=True)
@@ -55,14 +55,12 @@ def _greedy(offsets: ti.types.ndarray(), neighbours: ti.types.ndarray(), order: 
         used = ti.u64(0)
         for e in range(offsets[v], offsets[v + 1]):
             c = colors[neighbours[e]]
-            if c >= 0:
+            if 0 <= c < MAX_COLORS:
                 used |= ti.u64(1) << ti.u64(c)
         c = 0
         while c < MAX_COLORS and (used >> ti.u64(c)) & ti.u64(1) == 1:
             c += 1
         colors[v] = c
-        if c == MAX_COLORS:
-            n_colors = -MAX_COLORS
         n_colors = ti.max(n_colors, c + 1)
         # END SOLUTION
     return n_colors
@@ -100,7 +98,7 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
         visit = np.argsort(-np.diff(offsets), kind="stable").astype(np.int32)
     colors = np.full(n_vertices, -1, dtype=np.int32)
     n_colors = _greedy(offsets, neighbours, visit, colors)
-    if n_colors < 0:
+    if n_colors > MAX_COLORS:
         raise MeshError(f"the mesh needs more than {MAX_COLORS} colours (a vertex has too many "
                         "neighbours); remesh with better-shaped tets")
     seconds = time.perf_counter() - start

@@ -89,16 +89,16 @@ def dpsi_dF(F, mu, lam):
 
 @ti.func
 def vertex_force_hessian(Fm, J, w, m_sq, vol, mu, lam):
-    """One tet's contribution to the force f_i and Hessian H_i of one of its vertices i.
+    """One tet's contribution (f, H) to the force f_i and Hessian H_i of one of its vertices i.
 
     With m = dF/dx_i direction (the row of Dm^-1 that belongs to vertex i), the energy of the tet
-    depends on x_i only through F m, |F|^2 and J = det F, and:
-      Fm = F m;  J = det F;  w = dJ/dx_i = cof(F) m;  m_sq = |m|^2;  vol = rest volume.
-    Then f_i = -vol P m = -vol (mu F m + lam (J - alpha) w) and
-    H_i = vol (mu |m|^2 I + lam w w^T), which is exact (J is affine in x_i, so d2J/dx_i2 = 0) and
-    symmetric positive definite whenever m != 0 (lecture notes, chapter 3).
+    depends on x_i only through F m, |F|^2 and J = det F. The arguments are
+      Fm = F m;  J = det F;  w = dJ/dx_i = cof(F) m;  m_sq = |m|^2;  vol = rest volume;
+    f is -d(vol Psi)/dx_i (3-vector) and H = d2(vol Psi)/dx_i2 (3x3); lecture notes, chapter 3.
     """
     # BEGIN SOLUTION task=force_hessian
+    # f = -vol P m with P m = mu F m + lam (J - alpha) cof(F) m. H is exact: J is affine in x_i,
+    # so d2J/dx_i2 = 0, and H is symmetric positive definite whenever m != 0.
     alpha = 1.0 + mu / lam
     f = -vol * (mu * Fm + lam * (J - alpha) * w)
     H = vol * (ti.Matrix.diag(3, mu * m_sq) + lam * w.outer_product(w))

@@ -51,3 +51,11 @@ def test_simulation_leaves_fixed_vertices_out_of_the_colour_sets():
     assert (sim.colors[~fixed] >= 0).all()
     assert sim.color_order.to_numpy().size == (~fixed).sum()
     assert sim.n_colors == len(np.unique(sim.colors[~fixed]))
+
+
+def test_more_than_64_colours_is_reported():
+    """68 vertices that all share tets pairwise (tets (i, j, 66, 67)) need 68 colours."""
+    i, j = np.triu_indices(66, k=1)
+    tets = np.stack([i, j, np.full_like(i, 66), np.full_like(i, 67)], axis=1)
+    with pytest.raises(solver.MeshError, match="more than 64 colours"):
+        solver.color_vertices(tets, 68)

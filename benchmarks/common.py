@@ -1,0 +1,139 @@
+"""Shared plumbing of the benchmark scripts: command line, Taichi start-up, CSV, tables, timing."""
+import argparse
+import csv
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+
+def parser(description: str, default_out: str) -> argparse.ArgumentParser:
+    """An argparse parser with the options every benchmark has: --out, --quick, --threads."""
+    p = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--out", default=default_out, help="folder for the CSV and PNG files")
+    p.add_argument("--quick", action="store_true", help="a small, fast version (what the tests run)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return p
+
+
+def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
+    """ti.init on the CPU in float64, optionally with a thread cap and the kernel profiler."""
+    import taichi as ti
+
+    kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)
+    if threads:
+        kwargs["cpu_max_num_threads"] = int(threads)
+    ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
+
+
+def write_csv(path: str, rows: list, columns: list = None) -> str:
+    """Write a list of dicts as CSV (columns: the union of keys in first-seen order by default)."""
+    if columns is None:
+        columns = []
+        for r in rows:
+            for k in r:
+                if k not in columns:
+                    columns.append(k)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _fmt(r.get(k, "")) for k in columns})
+    return path
+
+
+def read_csv(path: str) -> list:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def _fmt(v):
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.6g}"
+    return v
+
+
+def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
+    """A markdown table of `rows` (dicts) restricted to `columns`."""
+    fmt = fmt or {}
+
+    def cell(r, c):
+        v = r.get(c, "")
+        if c in fmt and v not in ("", None):
+            return fmt[c](v)
+        if isinstance(v, (float, np.floating)):
+            return f"{float(v):.3g}"
+        return str(v)
+
+    lines = []
+    if title:
+        lines.append(f"**{title}**\n")
+    lines.append("| " + " | ".join(columns) + " |")
+    lines.append("|" + "---|" * len(columns))
+    for r in rows:
+        lines.append("| " + " | ".join(cell(r, c) for c in columns) + " |")
+    return "\n".join(lines)
+
+
+def provenance(argv=None) -> str:
+    """One line saying which command produced a result, when, and on what."""
+    argv = sys.argv if argv is None else argv
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                                text=True, timeout=5).stdout.strip()
+    except Exception:
+        commit = "?"
+    cmd = "python -m benchmarks." + os.path.splitext(os.path.basename(argv[0]))[0] + " " + " ".join(argv[1:])
+    return (f"`{cmd.strip()}` on {datetime.date.today().isoformat()}, commit {commit or '?'}, "
+            f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores")
+
+
+def progress(iterable=None, total=None, desc=None, disable=False):
+    from tqdm import tqdm
+
+    return tqdm(iterable, total=total, desc=desc, disable=disable, dynamic_ncols=True, file=sys.stderr)
+
+
+class Timer:
+    """Accumulating wall-clock timer: `with timer: ...` adds the elapsed seconds to timer.seconds."""
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def __enter__(self):
+        self._t = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        self.seconds += time.perf_counter() - self._t
+
+
+def bar_mesh_cells(target_tets: int):
+    """Cells (nx, ny, nz) of a 10:1:1 bar with about `target_tets` tets (6 tets per cell)."""
+    n = max(1, round((target_tets / 6 / 100) ** (1 / 3)))
+    return (10 * n, n, n)
+
+
+def time_to_reach(times, errors, threshold):
+    """First time at which the error is <= threshold, interpolated log-log between checkpoints;
+    NaN when never reached."""
+    times, errors = np.asarray(times, float), np.asarray(errors, float)
+    hit = np.flatnonzero(errors <= threshold)
+    if not len(hit):
+        return float("nan")
+    k = hit[0]
+    if k == 0 or times[k - 1] <= 0 or errors[k - 1] <= 0 or errors[k] <= 0:
+        return float(times[k])
+    le0, le1 = np.log(errors[k - 1]), np.log(errors[k])
+    lt0, lt1 = np.log(times[k - 1]), np.log(times[k])
+    s = (np.log(threshold) - le0) / (le1 - le0) if le1 != le0 else 1.0
+    return float(np.exp(lt0 + s * (lt1 - lt0)))

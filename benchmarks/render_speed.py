@@ -1,0 +1,83 @@
+"""Headless render speed: one 1280x720 frame of a ~20k-triangle surface on the CPU.
+
+    python benchmarks/render_speed.py --out out/bench
+
+Times the Taichi rasteriser (draw + copy of the image to NumPy) over a slowly deforming plate
+with a Newton-style ghost and a grid plane, after one warm-up frame (JIT compile). Writes
+render_speed.csv to --out and prints the median milliseconds per frame; PNG encoding (Pillow,
+compress_level=1) is timed separately because it is not part of rendering.
+"""
+import argparse
+import csv
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import solver  # noqa: E402
+from demo import colours  # noqa: E402
+from demo.render import Body, Camera, GridPlane, Renderer  # noqa: E402
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter, description=__doc__)
+    parser.add_argument("--out", type=Path, required=True, help="folder for render_speed.csv")
+    parser.add_argument("--frames", type=int, default=30, help="timed frames")
+    parser.add_argument("--size", default="1280x720", help="image size WxH")
+    parser.add_argument("--cells", default="100,48,2", help="box cells; boundary triangles = 4(xy + xz + yz)")
+    parser.add_argument("--arch", choices=["cpu", "gpu"], default="cpu")
+    args = parser.parse_args(argv)
+    width, height = (int(v) for v in args.size.split("x"))
+    cells = tuple(int(v) for v in args.cells.split(","))
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    solver.ensure_taichi(arch=args.arch)
+    mesh = solver.box_mesh(size=(1.0, 0.5, 0.02), cells=cells, origin=(-0.5, -0.25, 0.0))
+    faces = mesh.boundary_faces()
+    rest = mesh.vertices
+    renderer = Renderer(width, height, arch=args.arch)
+    camera = Camera(eye=(0.0, -1.3, 0.8), target=(0.0, 0.0, 0.0), fov_degrees=40)
+    grid = GridPlane(point=(0.0, 0.0, -0.3))
+    t = colours.normalise(rest[:, 0], -0.5, 0.5)
+    vertex_colours = colours.sequential(t)
+
+    rows = []
+    for frame in range(args.frames + 1):
+        x = rest.copy()
+        x[:, 2] += 0.1 * np.sin(3.0 * x[:, 0] + 0.2 * frame)
+        body = Body(x, faces, vertex_colours, ghost_positions=x + (0.0, 0.0, 0.05))
+        start = time.perf_counter()
+        renderer.draw(body, camera, grid=grid)
+        drawn = time.perf_counter()
+        image = renderer.image()
+        copied = time.perf_counter()
+        if frame == 0:
+            Image.fromarray(image).save(args.out / "render_speed_frame.png")
+        else:
+            rows.append((frame, 1e3 * (drawn - start), 1e3 * (copied - drawn), 1e3 * (copied - start), _png_ms(image)))
+
+    path = args.out / "render_speed.csv"
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["frame", "draw_ms", "readback_ms", "render_ms", "png_encode_ms"])
+        writer.writerows([(r[0], *(f"{v:.3f}" for v in r[1:])) for r in rows])
+    render_ms = np.median([r[3] for r in rows])
+    png_ms = np.median([r[4] for r in rows])
+    print(f"{width}x{height}, {len(faces)} triangles (+ ghost), arch={args.arch}: median {render_ms:.1f} ms per "
+          f"frame rendered (PNG encoding adds {png_ms:.1f} ms); {path}")
+
+
+def _png_ms(image):
+    import io
+
+    start = time.perf_counter()
+    Image.fromarray(image).save(io.BytesIO(), format="PNG", compress_level=1)
+    return 1e3 * (time.perf_counter() - start)
+
+
+if __name__ == "__main__":
+    main()

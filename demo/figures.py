@@ -1,0 +1,556 @@
+"""Every figure, table and number of the lecture notes: ``python -m demo figures``.
+
+    python -m demo figures                   # all sections, about 2-3 minutes on 2 CPU cores
+    python -m demo figures --only sweeps     # one section (names: --list)
+    python -m demo figures --check           # change nothing; fail if the notes are out of date
+    python -m demo figures --full            # also the 31k-tet meshes (slow: its Newton steps)
+
+Writes PNGs and ``numbers.json`` into ``lecture_notes/figures/`` and then rewrites two kinds of
+blocks in the chapters (``lecture_notes/*.md``):
+
+* generated blocks ``<!-- begin generated: KEY -->`` ... ``<!-- end generated -->`` and inline
+  values ``<!--v:KEY-->...<!--/v-->`` get the text stored under KEY in ``numbers.json``;
+* code excerpts: a fenced block right after ``<!-- excerpt: solver/file.py Name.or.function -->``
+  gets that function's current source.
+
+``tests/test_lecture_notes.py`` fails when either is stale, so the notes stay true to the code.
+The measurement set-up follows ``../shared/vbd-facts.md``: a 1 x 0.1 x 0.1 m bar pinned at x = 0,
+nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, gravity -9.81 z, float64 on the CPU, error
+||x - x*|| / ||x* - x_n|| against the converged global Newton step x*.
+"""
+import argparse
+import ast
+import dataclasses
+import json
+import re
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+NOTES = REPO_ROOT / "lecture_notes"
+FIGURES = NOTES / "figures"
+NUMBERS = "numbers.json"
+
+GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
+INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
+EXCERPT = re.compile(r"(<!-- excerpt: (?P<path>\S+) (?P<name>[\w.]+) -->\n```python\n)(?P<body>.*?)(\n```)", re.S)
+
+BAR = dict(size=(1.0, 0.1, 0.1))
+CHECKPOINTS = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000)
+
+
+# ---------------------------------------------------------------------------------------------
+# Notes: generated blocks and code excerpts
+# ---------------------------------------------------------------------------------------------
+def function_source(path: Path, name: str) -> str:
+    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators included."""
+    text = path.read_text(encoding="utf-8")
+    node = ast.parse(text)
+    for part in name.split("."):
+        matches = [child for child in ast.iter_child_nodes(node)
+                   if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and child.name == part]
+        if not matches:
+            raise KeyError(f"{name} not found in {path}")
+        node = matches[0]
+    first = min([node.lineno] + [d.lineno for d in node.decorator_list])
+    lines = text.splitlines()[first - 1:node.end_lineno]
+    return textwrap.dedent("\n".join(lines)).rstrip()
+
+
+def refresh_excerpts(text: str, root: Path = REPO_ROOT) -> str:
+    def replace(match):
+        body = function_source(root / match["path"], match["name"])
+        return match.group(1) + body + match.group(5)
+
+    return EXCERPT.sub(replace, text)
+
+
+def fill_generated(text: str, numbers: dict) -> str:
+    def block(match):
+        key = match["key"]
+        return match.group(1) + numbers[key] + match.group(4) if key in numbers else match.group(0)
+
+    def inline(match):
+        key = match["key"]
+        return match.group(1) + numbers[key] + match.group(4) if key in numbers else match.group(0)
+
+    return INLINE.sub(inline, GENERATED.sub(block, text))
+
+
+def chapters(notes: Path = NOTES):
+    return sorted(notes.glob("[0-9][0-9]-*.md"))
+
+
+def update_notes(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
+    """Rewrite the generated blocks and excerpts of every chapter; returns the files that changed."""
+    changed = []
+    for path in chapters(notes):
+        text = path.read_text(encoding="utf-8")
+        new = refresh_excerpts(fill_generated(text, numbers), root)
+        if new != text:
+            path.write_text(new, encoding="utf-8")
+            changed.append(path)
+    return changed
+
+
+def stale(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
+    """Problems that `update_notes` would fix, or that it cannot: one line each."""
+    problems = []
+    for path in chapters(notes):
+        text = path.read_text(encoding="utf-8")
+        for match in list(GENERATED.finditer(text)) + list(INLINE.finditer(text)):
+            if match["key"] not in numbers:
+                problems.append(f"{path.name}: no number {match['key']!r} in {NUMBERS}; run python -m demo figures")
+            elif numbers[match["key"]] != match["body"]:
+                problems.append(f"{path.name}: {match['key']} differs from {NUMBERS}; run python -m demo figures")
+        for match in EXCERPT.finditer(text):
+            try:
+                source = function_source(root / match["path"], match["name"])
+            except (OSError, KeyError, SyntaxError) as e:
+                problems.append(f"{path.name}: excerpt {match['path']} {match['name']}: {e}")
+                continue
+            if source != match["body"]:
+                problems.append(f"{path.name}: excerpt of {match['path']} {match['name']} no longer matches the "
+                                f"source; run python -m demo figures --only excerpts")
+    return problems
+
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+# ---------------------------------------------------------------------------------------------
+def _sci(value, digits=2):
+    """1.4e-02 -> '1.4e-2'."""
+    mantissa, exponent = f"{value:.{digits - 1}e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def _E(value):
+    """1e+04 -> '1e4'."""
+    mantissa, exponent = f"{value:.0e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def _table(header, rows):
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def _material(E):
+    import solver
+
+    return solver.Material(youngs_modulus=E, poisson_ratio=0.3, density=1000.0)
+
+
+def _bar_sim(cells, E, iterations=1, **kwargs):
+    import solver
+
+    mesh = solver.box_mesh(cells=cells, **BAR)
+    kwargs.setdefault("initial_guess", solver.InitialGuess.INERTIAL)
+    return solver.Simulation(mesh, _material(E), dt=1 / 60, fixed=mesh.vertices[:, 0] < 1e-9,
+                             iterations=iterations, **kwargs)
+
+
+def _convergence(sim, checkpoints, x_star=None):
+    """Errors and solver seconds after each checkpoint iteration count of one step from the current state."""
+    import solver
+
+    x_n = sim.positions
+    if x_star is None:
+        x_star = sim.newton_reference()
+    sim.begin_step()
+    rows, done, seconds = [], 0, 0.0
+    for k in checkpoints:
+        start = time.perf_counter()
+        sim.run_iterations(k - done)
+        seconds += time.perf_counter() - start
+        done = k
+        rows.append((k, seconds, solver.relative_error(sim.positions, x_star, x_n)))
+    sim.end_step()
+    return rows
+
+
+def _warm_up(sim):
+    """Compile the step kernels so that timings measure running, not compiling; back to rest."""
+    sim.begin_step()
+    sim.run_iterations(1)
+    sim.end_step()
+    sim.reset()
+
+
+def _save_image(image, path, colours=256):
+    image = image.convert("RGB").quantize(colors=colours, method=2, dither=0)
+    image.save(path, optimize=True)
+
+
+def _save_plot(fig, path):
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
+    buffer.seek(0)
+    _save_image(Image.open(buffer), path, colours=128)
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update({"font.size": 9, "axes.grid": True, "grid.alpha": 0.3, "figure.figsize": (6.4, 3.4)})
+    return plt
+
+
+def _render_scene(scene, frames_to_save, out, prefix, size, ghost_frames=None):
+    """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel errors}.
+
+    The Newton ghost (and so the error label) is computed only on the saved frames: it is the
+    expensive part and the other frames do not show it.
+    """
+    from .compose import FrameComposer
+    from .runner import SceneRunner
+
+    runner = SceneRunner(scene)
+    composer = None
+    wanted = sorted(frames_to_save)
+    ghosts = [p.ghost_enabled for p in runner.panels]
+    errors = {}
+    for frame in range(wanted[-1] + 1):
+        for p, ghost in zip(runner.panels, ghosts):
+            p.ghost_enabled = ghost and frame in wanted
+        states = runner.advance()
+        if frame in wanted:
+            composer = composer or FrameComposer(scene, *size)
+            _save_image(composer.compose(states), out / f"{prefix}_{frame:02d}.png")
+            errors[frame] = [s.error for s in states]
+    return errors
+
+
+# ---------------------------------------------------------------------------------------------
+# Sections: each returns {key: text} for the notes
+# ---------------------------------------------------------------------------------------------
+def section_colouring(out, full, size):
+    import numpy as np
+
+    import solver
+    from solver.topology import vertex_neighbours
+
+    from . import scenes
+
+    _render_scene(scenes.get("colouring"), [0], out, "colouring", size)
+    meshes = [("bar 20x2x2 cells", solver.box_mesh(cells=(20, 2, 2), **BAR)),
+              ("bar 40x4x4 cells", solver.box_mesh(cells=(40, 4, 4), **BAR)),
+              ("bar 80x8x8 cells", solver.box_mesh(cells=(80, 8, 8), **BAR)),
+              ("sphere, voxelised (drop scene)", scenes.AssetMesh("assets/sphere.obj", resolution=10).build())]
+    rows, numbers = [], {}
+    for label, mesh in meshes:
+        row = [label, f"{mesh.n_vertices:,}", f"{mesh.n_tets:,}"]
+        for order in (solver.VertexOrder.NATURAL, solver.VertexOrder.LARGEST_FIRST):
+            c = solver.color_vertices(mesh.tets, mesh.n_vertices, order)
+            row.append(f"{c.n_colors} ({c.sizes.min()}-{c.sizes.max()})")
+            if order is solver.VertexOrder.NATURAL and label.startswith("bar 40x4x4"):
+                numbers["colouring.n_colors_40"] = str(c.n_colors)
+        offsets, _ = vertex_neighbours(mesh.tets, mesh.n_vertices)
+        row.append(str(int(np.diff(offsets).max())))
+        rows.append(row)
+    numbers["colouring.table"] = _table(
+        ["mesh", "vertices", "tets", "colours, natural order (smallest-largest set)", "colours, largest first",
+         "max neighbours"], rows)
+    return numbers
+
+
+def section_sweeps(out, full, size):
+    from . import scenes
+
+    numbers = {}
+    # cells an elastic wave (speed c = sqrt(E / rho)) crosses in one time step: c h / dx
+    rows = []
+    for E in (1e4, 1e5, 1e6):
+        c = (E / 1000.0) ** 0.5
+        rows.append([f"{_E(E)} Pa", f"{c:.1f} m/s", f"{c / 60:.3f} m",
+                     *[f"{c / 60 * n:.1f}" for n in (20, 40, 80)]])
+    numbers["sweeps.wave.table"] = _table(["E", "c = sqrt(E / rho)", "c h (h = 1/60 s)", "c h / dx, 20 cells",
+                                           "40 cells", "80 cells"], rows)
+    stiff = scenes.get("stiffness_sweep")
+    frames = (1, 30)
+    errors = _render_scene(stiff, frames, out, "stiffness_sweep", size)
+    for frame in frames:
+        for panel, error in zip(stiff.panels, errors[frame]):
+            key = f"sweeps.stiffness.E{panel.material.youngs_modulus:.0e}.frame{frame}".replace("+0", "")
+            numbers[key] = f"{error:.3f}"
+    numbers["sweeps.stiffness.table"] = _table(
+        ["frame (time)", *[f"{p.label}, {p.iterations} it." for p in stiff.panels]],
+        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
+
+    res = scenes.get("resolution_sweep")
+    cells = ((20, 2, 2), (40, 4, 4)) if not full else ((40, 4, 4), (80, 8, 8))
+    panels = tuple(dataclasses.replace(p, mesh=scenes.BoxMesh(cells=c), label=f"{c[0]}x{c[1]}x{c[2]} cells")
+                   for p, c in zip(res.panels, cells))
+    res = dataclasses.replace(res, panels=panels)
+    errors = _render_scene(res, frames, out, "resolution_sweep", size)
+    numbers["sweeps.resolution.table"] = _table(
+        ["frame (time)", *[f"{p.label}, E = 1e5 Pa, {p.iterations} it." for p in res.panels]],
+        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
+    return numbers
+
+
+def section_convergence(out, full, size):
+    plt = _pyplot()
+    meshes = [(20, 2, 2), (40, 4, 4)] + ([(80, 8, 8)] if full else [])
+    results = {}
+    for cells in meshes:
+        for E in (1e4, 1e6):
+            sim = _bar_sim(cells, E)
+            _warm_up(sim)
+            results[cells, E] = (sim.mesh.n_tets, _convergence(sim, CHECKPOINTS))
+    fig, ax = plt.subplots()
+    styles = {1e4: "-", 1e6: "--"}
+    for (cells, E), (tets, rows) in results.items():
+        ax.loglog([r[0] for r in rows], [max(r[2], 1e-16) for r in rows], styles[E], marker=".",
+                  label=f"E = {_E(E)} Pa, {tets:,} tets")
+    ax.set_xlabel("VBD iterations in the step")
+    ax.set_ylabel("relative error ||x - x*|| / ||x* - x_n||")
+    ax.set_title("One step from rest, initial guess y")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "convergence.png")
+
+    shown = (10, 100, 1000)
+    header = ["iterations"] + [f"E = {_E(E)} Pa, {tets:,} tets" for (cells, E), (tets, _) in results.items()]
+    rows = [[str(k)] + [_sci(dict((r[0], r[2]) for r in rows)[k]) for _, rows in results.values()] for k in shown]
+    numbers = {"convergence.table": _table(header, rows)}
+    for (cells, E), (tets, rows_) in results.items():
+        by_k = {r[0]: r for r in rows_}
+        for k in shown:
+            numbers[f"convergence.{cells[0]}.E{E:.0e}.k{k}".replace("+0", "")] = _sci(by_k[k][2])
+        numbers[f"convergence.{cells[0]}.E{E:.0e}.ms_per_iteration".replace("+0", "")] = \
+            f"{1000 * by_k[1000][1] / 1000:.2f}"
+
+    # run time against error: VBD (40x4x4) and the global Newton reference on the same step
+    import solver
+
+    fig, ax = plt.subplots()
+    timing_rows = []
+    for E in (1e4, 1e6):
+        tets, rows_ = results[(40, 4, 4), E]
+        ax.loglog([r[1] for r in rows_], [max(r[2], 1e-16) for r in rows_], styles[E], marker=".",
+                  label=f"VBD, E = {_E(E)} Pa")
+        sim = _bar_sim((40, 4, 4), E)
+        problem = sim.step_problem()
+        x_n = sim.positions
+        x_star = sim.newton_reference()
+        result = solver.newton_solve(problem, problem.y_with_constraints(), 1e-10, 50, keep_iterates=True)
+        seconds = [h.seconds for h in result.history[1:]]
+        errs = [max(solver.relative_error(x, x_star, x_n), 1e-16) for x in result.iterates]
+        ax.loglog(seconds, errs, styles[E], marker="s", color="k", label=f"global Newton, E = {_E(E)} Pa")
+        vbd_1e2 = next((r[1] for r in rows_ if r[2] <= 1e-2), None)
+        vbd_1e6 = next((r[1] for r in rows_ if r[2] <= 1e-6), None)
+        timing_rows.append([f"{_E(E)} Pa", f"{1000 * rows_[CHECKPOINTS.index(100)][1] / 100:.2f} ms",
+                            "not in 1000 it." if vbd_1e2 is None else f"{vbd_1e2:.3f} s",
+                            "not in 1000 it." if vbd_1e6 is None else f"{vbd_1e6:.3f} s",
+                            f"{result.iterations}", f"{seconds[-1]:.2f} s"])
+    ax.set_xlabel("solver wall time in the step (s, this machine)")
+    ax.set_ylabel("relative error")
+    ax.set_title(f"Run time against error, bar 40x4x4 cells ({results[(40, 4, 4), 1e4][0]:,} tets), 1 step")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "time_vs_error.png")
+    numbers["convergence.timing.table"] = _table(
+        ["material", "VBD time per iteration", "VBD time to error 1e-2", "VBD time to error 1e-6",
+         "Newton iterations", "Newton time"], timing_rows)
+    return numbers
+
+
+def section_propagation(out, full, size):
+    import numpy as np
+
+    import solver
+
+    from . import scenes
+
+    plt = _pyplot()
+    scene = scenes.get("propagation")
+    saved = (1, 5, 20, 40)
+    _render_scene(scene, saved, out, "propagation", size)
+
+    panel = scene.panels[0]
+    mesh = panel.mesh.build()
+    rest = mesh.vertices
+    cells = panel.mesh.cells[0]
+    layer = np.rint(rest[:, 0] / (panel.mesh.size[0] / cells)).astype(int)
+    sim = solver.Simulation(mesh, panel.material, dt=scene.dt, gravity=scene.gravity, iterations=1,
+                            fixed=panel.fixed[0].select(rest), kinematic=panel.kinematic[0].select(rest),
+                            kinematic_motion=panel.motion, initial_guess=panel.initial_guess)
+    x_star = sim.newton_reference()
+    sim.begin_step()
+    fronts, profiles = [], {}
+    for k in range(1, 41):
+        sim.run_iterations(1)
+        moved = np.linalg.norm(sim.positions - rest, axis=1)
+        reached = layer[(moved > 1e-12) & sim.free_mask]
+        fronts.append(cells - int(reached.min()) if len(reached) else 0)
+        if k in (1, 2, 5, 10, 20, 40):
+            profiles[k] = np.array([moved[layer == c].max() for c in range(cells + 1)])
+    sim.end_step()
+    exact = np.array([np.linalg.norm(x_star - rest, axis=1)[layer == c].max() for c in range(cells + 1)])
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9.0, 3.4))
+    xs = np.arange(cells + 1) / cells
+    for k, prof in profiles.items():
+        a.semilogy(xs, np.maximum(prof, 1e-17), label=f"after {k} it.")
+    a.semilogy(xs, exact, "k--", label="Newton x*")
+    a.set_xlabel("position along the bar (m); the right end was moved")
+    a.set_ylabel("distance moved (m, log)")
+    a.set_ylim(1e-16, 0.1)
+    a.legend(fontsize=7)
+    ks = np.arange(1, len(fronts) + 1)
+    b.plot(ks, fronts, marker=".", label="cell layers reached")
+    b.plot(ks, np.minimum(ks, cells - 1), ":", color="gray", label="one layer per iteration")
+    b.set_xlabel("iterations")
+    b.set_ylabel(f"layers from the moved end (pinned end: {cells - 1})")
+    b.legend(fontsize=7)
+    fig.tight_layout()
+    _save_plot(fig, out / "propagation_front.png")
+    rate = np.polyfit(ks[:15], np.array(fronts[:15]), 1)[0]
+    return {"propagation.front.table": _table(["iterations", *[str(k) for k in (1, 2, 3, 5, 10, 20)]],
+                                              [["cell layers reached", *[str(fronts[k - 1]) for k in (1, 2, 3, 5, 10, 20)]]]),
+            "propagation.rate": f"{rate:.2f}", "propagation.cells": str(cells),
+            "propagation.full_at": str(next((k for k, f in zip(ks, fronts) if f >= cells - 1), "more than 40"))}
+
+
+def section_guesses(out, full, size):
+    import numpy as np
+
+    import solver
+
+    plt = _pyplot()
+    E, pre_steps = 1e5, 10
+    sim = _bar_sim((40, 4, 4), E, iterations=200, initial_guess=solver.InitialGuess.ADAPTIVE)
+    sim.step(pre_steps)
+    state = [field.to_numpy() for field in (sim.x, sim.v, sim.v_prev)]
+    x_star = sim.newton_reference()
+    checkpoints = CHECKPOINTS[:12]
+    curves = {}
+    for guess in solver.InitialGuess:
+        for field, value in zip((sim.x, sim.v, sim.v_prev), state):
+            field.from_numpy(value)
+        sim.initial_guess = guess
+        curves[guess] = _convergence(sim, checkpoints, x_star)
+    fig, ax = plt.subplots()
+    names = {solver.InitialGuess.PREVIOUS: "x_n", solver.InitialGuess.INERTIA: "x_n + h v_n",
+             solver.InitialGuess.INERTIAL: "y = x_n + h v_n + h^2 g", solver.InitialGuess.ADAPTIVE: "adaptive"}
+    for guess, rows in curves.items():
+        ax.loglog([r[0] for r in rows], [r[2] for r in rows], marker=".", label=names[guess])
+    ax.set_xlabel("VBD iterations in the step")
+    ax.set_ylabel("relative error")
+    ax.set_title(f"Initial guesses: step {pre_steps + 1} of a swinging bar, E = 1e5 Pa, 40x4x4 cells")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "initial_guess.png")
+    shown = (1, 10, 100)
+    rows = [[f"`{g.name}`: {names[g]}", *[_sci(dict((r[0], r[2]) for r in curves[g])[k]) for k in shown]]
+            for g in curves]
+    return {"guesses.table": _table(["initial guess", *[f"error after {k} it." for k in shown]], rows),
+            "guesses.step": str(pre_steps + 1)}
+
+
+def section_chebyshev(out, full, size):
+    plt = _pyplot()
+    E = 1e6
+    rhos = (None, 0.8, 0.9, 0.95, 0.98)
+    checkpoints = CHECKPOINTS[:15]
+    curves, x_star = {}, None
+    for rho in rhos:
+        sim = _bar_sim((40, 4, 4), E, chebyshev_rho=rho)
+        x_star = sim.newton_reference() if x_star is None else x_star    # the same step for every rho
+        curves[rho] = _convergence(sim, checkpoints, x_star)
+    fig, ax = plt.subplots()
+    for rho, rows in curves.items():
+        ax.loglog([r[0] for r in rows], [r[2] for r in rows], marker=".",
+                  label="no acceleration" if rho is None else f"Chebyshev, rho = {rho}")
+    ax.set_xlabel("VBD iterations in the step")
+    ax.set_ylabel("relative error")
+    ax.set_title("Chebyshev acceleration, E = 1e6 Pa, 40x4x4 cells, one step from rest")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "chebyshev.png")
+    shown = (10, 100, 300)
+    rows = [["none" if rho is None else str(rho), *[_sci(dict((r[0], r[2]) for r in curves[rho])[k]) for k in shown]]
+            for rho in rhos]
+    return {"chebyshev.table": _table(["rho", *[f"error after {k} it." for k in shown]], rows)}
+
+
+SECTIONS = {
+    "colouring": section_colouring,
+    "sweeps": section_sweeps,
+    "convergence": section_convergence,
+    "propagation": section_propagation,
+    "guesses": section_guesses,
+    "chebyshev": section_chebyshev,
+}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(prog="python -m demo figures",
+                                     description="Regenerate every figure, table and number of lecture_notes/.")
+    parser.add_argument("--only", default="", help="comma-separated sections to run (see --list); "
+                                                   "'excerpts' refreshes only the code excerpts")
+    parser.add_argument("--list", action="store_true", help="list the sections")
+    parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if the notes are stale")
+    parser.add_argument("--full", action="store_true", help="include the 31k-tet meshes (slow)")
+    parser.add_argument("--out", type=Path, default=FIGURES, help="figures folder")
+    parser.add_argument("--notes", type=Path, default=NOTES, help="lecture notes folder")
+    parser.add_argument("--size", default="960x420", help="rendered frame size WxH")
+    args = parser.parse_args(argv)
+    if args.list:
+        for name, fn in SECTIONS.items():
+            print(name)
+        print("excerpts")
+        return 0
+    numbers_path = args.out / NUMBERS
+    numbers = json.loads(numbers_path.read_text()) if numbers_path.exists() else {}
+    if args.check:
+        problems = stale(numbers, args.notes)
+        for line in problems:
+            print(line)
+        missing = [m for m in _figure_links(args.notes) if not (args.notes / m).exists()]
+        for m in missing:
+            print(f"missing figure {m}; run python -m demo figures")
+        return 1 if problems or missing else 0
+    selected = [s for s in args.only.split(",") if s] or list(SECTIONS)
+    unknown = [s for s in selected if s not in SECTIONS and s != "excerpts"]
+    if unknown:
+        from .errors import DemoError
+
+        raise DemoError(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}, excerpts")
+    width, height = (int(v) for v in args.size.split("x"))
+    args.out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
+    for name in selected:
+        if name == "excerpts":
+            continue
+        import solver
+
+        solver.ensure_taichi("cpu")
+        t = time.perf_counter()
+        numbers.update(SECTIONS[name](args.out, args.full, (width, height)))
+        numbers_path.write_text(json.dumps(numbers, indent=1, sort_keys=True) + "\n")
+        print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
+    changed = update_notes(numbers, args.notes)
+    print(f"figures in {args.out}/, {len(changed)} chapter(s) updated, {time.perf_counter() - started:.0f} s in all")
+    return 0
+
+
+def _figure_links(notes: Path):
+    links = set()
+    for path in chapters(notes):
+        links.update(re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", path.read_text(encoding="utf-8")))
+    return sorted(links)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

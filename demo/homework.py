@@ -1,0 +1,394 @@
+"""Homework starter code: ``python -m demo homework --out DIR [--overwrite]``.
+
+The solver marks each piece students write with a solution region::
+
+    # BEGIN SOLUTION task=force_hessian
+    ...the reference solution...
+    # END SOLUTION
+
+The generator copies the project into DIR and replaces every region by a comment and
+``raise NotImplementedError("TODO: <task>: <what to implement>; see lecture_notes/<chapter>")``.
+Regions inside Taichi functions cannot raise at run time, so the solver calls
+``solver.todo.require_implemented`` on those functions before it compiles them: the starter stops
+with the same message instead of a Taichi compile error.
+
+The starter also gets a student README (the task list, points and how to grade) and the graded
+tests from ``homework/grading/`` as ``grading/``; ``pytest`` in the starter runs them and prints the
+score per task.
+
+This module imports nothing heavy: the graded tests read ``TASKS`` from it.
+"""
+import argparse
+import ast
+import io
+import json
+import re
+import shutil
+import sys
+import textwrap
+import tokenize
+from dataclasses import dataclass, field
+from pathlib import Path
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+GRADING_SOURCE = Path("homework") / "grading"
+README_TEMPLATE = Path("homework") / "README.template.md"
+STARTER_MARKER = ".vbd-starter.json"
+
+BEGIN = re.compile(r"^(?P<indent>[ \t]*)# BEGIN SOLUTION(?:[ \t]+task=(?P<task>[\w-]+))?[ \t]*$")
+END = re.compile(r"^[ \t]*# END SOLUTION[ \t]*$")
+
+# Never copied into a starter: version control, environments, caches, build output, the project's own
+# tests (they test the finished solver), the homework sources (solutions to the graded tests' checks).
+SKIP_NAMES = {".git", ".venv", "venv", "__pycache__", ".pytest_cache", ".cache", "out", ".ci", "tests",
+              "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", STARTER_MARKER}
+SKIP_PATHS = {Path("benchmarks") / "results"}
+SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
+
+
+@dataclass(frozen=True)
+class Task:
+    """One homework task: the functions whose solution regions it owns, and how it is graded."""
+
+    id: str
+    title: str
+    points: int
+    chapter: str                 # lecture notes chapter that derives it
+    functions: tuple             # "solver/file.py:qualified.name" holding this task's regions
+    what: dict                   # function name -> one-line description of what to write there
+    depends: tuple = ()          # tasks whose code the graded tests of this one also run
+    details: str = ""            # a paragraph for the student README
+    notes: dict = field(default_factory=dict)   # function name -> extra comment lines in the starter
+
+
+TASKS = (
+    Task(
+        id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=30,
+        chapter="lecture_notes/03-coordinate-descent.md",
+        functions=("solver/material.py:vertex_force_hessian",),
+        what={"vertex_force_hessian": "the contribution of one tet to the force f_i and the 3x3 Hessian H_i "
+                                      "of its vertex i"},
+        details="Given `F m`, `J = det F`, `w = dJ/dx_i = cof(F) m`, `|m|^2` and the rest volume, return the "
+                "tet's contribution to the force `f_i = -dE/dx_i` and the 3x3 Hessian `H_i = d2E/dx_i2` of "
+                "the stable Neo-Hookean energy (chapter 3, \"The force and Hessian of one tet\").",
+        notes={"vertex_force_hessian": ["Define f (3-vector) and H (3x3 matrix); the line after the region "
+                                        "returns them."]},
+    ),
+    Task(
+        id="coloring", title="Greedy graph colouring", points=20,
+        chapter="lecture_notes/04-parallelism.md",
+        functions=("solver/coloring.py:_greedy",),
+        what={"_greedy": "give vertex order[k] the smallest colour that none of its already coloured "
+                         "neighbours has"},
+        details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
+                "colour not used by any neighbour (CSR arrays `offsets`, `neighbours`); keep `n_colors` "
+                "up to date (chapter 4, \"Greedy graph colouring\").",
+        notes={"_greedy": ["v = order[k] is the vertex; its neighbours are neighbours[offsets[v]:offsets[v + 1]]; "
+                           "colors[u] is -1 until u is coloured.",
+                           "Keep n_colors = the number of colours used so far; the function returns it."]},
+    ),
+    Task(
+        id="vbd_sweep", title="The per-colour VBD sweep: assemble and solve each vertex's 3x3 system",
+        points=30, chapter="lecture_notes/03-coordinate-descent.md",
+        functions=("solver/simulation.py:Simulation._force_hessian", "solver/simulation.py:Simulation._solve_vertex"),
+        what={"_force_hessian": "assemble f_i and H_i of vertex i from its inertia term and the tets "
+                                "around it",
+              "_solve_vertex": "take vertex i's 3x3 Newton step x_i += H_i^-1 f_i, skipping a singular H_i"},
+        depends=("force_hessian", "coloring"),
+        details="In `Simulation._force_hessian`, add the inertia term `m_i/h^2 (y_i - x_i)` (and `m_i/h^2 I`) "
+                "and loop over the tets around the vertex with `_tet_kinematics` and `vertex_force_hessian`. "
+                "In `Simulation._solve_vertex`, solve the 3x3 system and update `x_i` in place "
+                "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
+        notes={"_force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
+                                  "the damping term below uses it).",
+                                  "The adjacency entries of colour slot k are e in "
+                                  "range(self.adj_offsets[k], self.adj_offsets[k + 1])."],
+               "_solve_vertex": ["i = self.color_order[k] is the vertex; self._force_hessian(k) gives f, H."]},
+    ),
+    Task(
+        id="chebyshev", title="Chebyshev acceleration", points=20,
+        chapter="lecture_notes/06-what-helps.md",
+        functions=("solver/simulation.py:Simulation._chebyshev_omega", "solver/simulation.py:Simulation._chebyshev"),
+        what={"_chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
+              "_chebyshev": "the accelerated update x = omega (x - x^(k-2)) + x^(k-2) and the history shift "
+                            "(VBD Eq. 18)"},
+        depends=("force_hessian", "coloring", "vbd_sweep"),
+        details="Return the weights `omega_1 = 1`, `omega_2 = 2/(2 - rho^2)`, "
+                "`omega_k = 4/(4 - rho^2 omega_(k-1))` and apply the over-relaxation step to every free vertex, "
+                "keeping `x_prev` = x^(k-1) and `x_prev2` = x^(k-2) up to date (chapter 6, \"Chebyshev "
+                "acceleration\").",
+        notes={"_chebyshev": ["Update x_prev2 <- x_prev and x_prev <- the accelerated x as well."]},
+    ),
+)
+
+TASKS_BY_ID = {task.id: task for task in TASKS}
+
+
+def _error(message):
+    from .errors import DemoError
+
+    return DemoError(message)
+
+
+def todo_message(task: Task, function: str) -> str:
+    """The text of the NotImplementedError that replaces a region of `task` inside `function`."""
+    short = function.rsplit(".", 1)[-1]
+    message = f"TODO: {task.id}: {short}: {task.what[short]}; see {task.chapter}"
+    assert '"' not in message and "\\" not in message, message
+    return message
+
+
+@dataclass
+class Region:
+    path: Path           # relative to the project root
+    task: Task
+    function: str        # qualified name of the enclosing function
+    start: int           # 1-based line of BEGIN
+    end: int             # 1-based line of END
+    lines: list          # the solution lines between the markers
+
+
+def _enclosing_functions(source: str):
+    """[(first line, last line, qualified name)] of every function in a module, innermost last."""
+    found = []
+
+    def visit(node, prefix):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                name = f"{prefix}{child.name}"
+                if not isinstance(child, ast.ClassDef):
+                    found.append((child.lineno, child.end_lineno, name))
+                visit(child, name + ".")
+            else:
+                visit(child, prefix)
+
+    visit(ast.parse(source), "")
+    return found
+
+
+def _comment_lines(text: str) -> set:
+    """Line numbers that hold only a comment."""
+    lines = set()
+    for token in tokenize.generate_tokens(io.StringIO(text).readline):
+        if token.type == tokenize.COMMENT and not token.line[:token.start[1]].strip():
+            lines.add(token.start[0])
+    return lines
+
+
+def find_regions(path: Path, text: str, root: Path = REPO_ROOT):
+    """The solution regions of one Python file, checked: balanced, task known, inside a task's function."""
+    lines = text.splitlines()
+    comments = _comment_lines(text)
+    regions, open_at, task = [], None, None
+    functions = None
+    for number, line in enumerate(lines, start=1):
+        if number not in comments:
+            continue           # a marker quoted in a string or docstring is not a marker
+        begin, end = BEGIN.match(line), END.match(line)
+        if begin:
+            if open_at is not None:
+                raise _error(f"{path}:{number}: BEGIN SOLUTION inside the region opened on line {open_at}")
+            task_id = begin["task"]
+            if task_id not in TASKS_BY_ID:
+                raise _error(f"{path}:{number}: solution region needs task=ID with ID one of "
+                             f"{', '.join(TASKS_BY_ID)}, got {task_id!r}")
+            open_at, task = number, TASKS_BY_ID[task_id]
+        elif end:
+            if open_at is None:
+                raise _error(f"{path}:{number}: END SOLUTION without BEGIN SOLUTION")
+            if functions is None:
+                functions = _enclosing_functions(text)
+            inside = [name for first, last, name in functions if first <= open_at <= last]
+            if not inside:
+                raise _error(f"{path}:{open_at}: solution region outside any function")
+            function = inside[-1]
+            if f"{path.as_posix()}:{function}" not in task.functions:
+                raise _error(f"{path}:{open_at}: region of task {task.id} is in {function}, which the task "
+                             f"does not list (TASKS in demo/homework.py)")
+            regions.append(Region(path, task, function, open_at, number, lines[open_at:number - 1]))
+            open_at = None
+    if open_at is not None:
+        raise _error(f"{path}:{open_at}: BEGIN SOLUTION is never closed")
+    return regions
+
+
+def strip_regions(text: str, regions) -> str:
+    """`text` with each region replaced by its TODO comment and raise."""
+    lines = text.splitlines(keepends=True)
+    out, cursor = [], 0
+    for region in regions:
+        out.extend(lines[cursor:region.start - 1])
+        indent = BEGIN.match(lines[region.start - 1].rstrip("\n"))["indent"]
+        short = region.function.rsplit(".", 1)[-1]
+        comment = [f"TODO(task {region.task.id}, {region.task.points} points): {region.task.what[short]}.",
+                   *region.task.notes.get(short, []),
+                   f"Replace the raise below with your code; see {region.task.chapter}."]
+        for paragraph in comment:
+            for line in textwrap.wrap(paragraph, width=max(40, 100 - len(indent)), break_on_hyphens=False):
+                out.append(f"{indent}# {line}\n")
+        out.append(f'{indent}raise NotImplementedError("{todo_message(region.task, region.function)}")\n')
+        cursor = region.end
+    out.extend(lines[cursor:])
+    return "".join(out)
+
+
+def project_files(root: Path, exclude: Path = None):
+    """Every file of the project that belongs in a starter, as paths relative to `root`, sorted."""
+    result = []
+
+    def walk(folder: Path):
+        for entry in sorted(folder.iterdir()):
+            rel = entry.relative_to(root)
+            if entry.name in SKIP_NAMES or rel in SKIP_PATHS or entry.is_symlink():
+                continue
+            if exclude is not None and entry.resolve() == exclude:
+                continue
+            if entry.is_dir():
+                walk(entry)
+            elif entry.is_file() and entry.suffix not in SKIP_SUFFIXES:
+                result.append(rel)
+
+    walk(root)
+    return result
+
+
+def all_regions(root: Path = REPO_ROOT):
+    """Every solution region under `root`'s Python files, in file and line order."""
+    regions = []
+    for rel in project_files(root):
+        if rel.suffix == ".py":
+            text = (root / rel).read_text(encoding="utf-8")
+            if "SOLUTION" in text:
+                regions += find_regions(rel, text, root)
+    return regions
+
+
+def _check_output(out: Path, root: Path, overwrite: bool):
+    out = out.resolve()
+    if out == root or root.is_relative_to(out):
+        raise _error(f"refusing to write the starter into {out}: it contains the project itself")
+    if out.exists() and not out.is_dir():
+        raise _error(f"{out} exists and is not a folder")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise _error(f"{out} is not empty; pass --overwrite to replace it or --out to choose another folder")
+        if (out / STARTER_MARKER).exists():
+            shutil.rmtree(out)     # an earlier starter: start clean so no stale file survives
+        # otherwise files are replaced one by one and nothing else in the folder is touched
+    return out
+
+
+def _student_readme(root: Path, regions) -> str:
+    rows, sections = [], []
+    for n, task in enumerate(TASKS, start=1):
+        places = sorted({f"`{r.path.as_posix()}` `{r.function}`" for r in regions if r.task is task})
+        needs = ", ".join(f"`{d}`" for d in task.depends) or "-"
+        rows.append(f"| {n} | `{task.id}` | {task.title} | {task.points} | {', '.join(places)} | {needs} |")
+        sections.append(f"### {n}. {task.title} (`{task.id}`, {task.points} points)\n\n{task.details}\n\n"
+                        f"Where: {', '.join(places)}. Read: [{task.chapter}]({task.chapter}).\n")
+    total = sum(task.points for task in TASKS)
+    template = (root / README_TEMPLATE).read_text(encoding="utf-8")
+    table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"
+             + "\n".join(rows) + f"\n| | | **total** | **{total}** | | |")
+    return (template.replace("{{TASK_TABLE}}", table).replace("{{TASK_SECTIONS}}", "\n".join(sections))
+            .replace("{{TOTAL}}", str(total)))
+
+
+def _pytest_ini(text: str) -> str:
+    """The project's pytest.ini pointed at the graded tests."""
+    if re.search(r"^testpaths\s*=.*$", text, flags=re.M):
+        return re.sub(r"^testpaths\s*=.*$", "testpaths = grading", text, flags=re.M)
+    return text.rstrip("\n") + "\ntestpaths = grading\n"
+
+
+def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: bool = False):
+    """Write the starter into `out`; returns the list of regions replaced."""
+    root = root.resolve()
+    out = _check_output(Path(out), root, overwrite)
+    files = project_files(root, exclude=out)
+    by_file, regions = {}, []
+    for rel in files:
+        if rel.suffix == ".py":
+            text = (root / rel).read_text(encoding="utf-8")
+            found = find_regions(rel, text, root) if "SOLUTION" in text else []
+            if found:
+                by_file[rel] = (text, found)
+                regions += found
+    missing = [task.id for task in TASKS if not any(r.task is task for r in regions)]
+    if missing:
+        raise _error(f"no solution region for task(s) {', '.join(missing)} under {root}; "
+                     "is this already a starter copy?")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        for rel in files:
+            target = out / rel
+            target.parent.mkdir(parents=True, exist_ok=True)
+            if rel in by_file:
+                text, found = by_file[rel]
+                target.write_text(strip_regions(text, found), encoding="utf-8")
+            elif rel == Path("pytest.ini"):
+                target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
+            else:
+                shutil.copyfile(root / rel, target)
+        if not (root / "pytest.ini").exists():
+            (out / "pytest.ini").write_text("[pytest]\ntestpaths = grading\n", encoding="utf-8")
+        grading = root / GRADING_SOURCE
+        shutil.copytree(grading, out / "grading", dirs_exist_ok=True,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache"))
+        _refresh_starter_notes(out)
+        if (root / "README.md").exists():
+            shutil.copyfile(root / "README.md", out / "PROJECT_README.md")
+        (out / "README.md").write_text(_student_readme(root, regions), encoding="utf-8")
+        (out / STARTER_MARKER).write_text(json.dumps(
+            {"tasks": [t.id for t in TASKS],
+             "regions": [{"file": r.path.as_posix(), "function": r.function, "task": r.task.id} for r in regions]},
+            indent=2) + "\n", encoding="utf-8")
+    except OSError as e:
+        raise _error(f"cannot write the starter into {out}: {e.strerror or e}") from None
+    if not quiet:
+        print(f"wrote the homework starter to {out}: {len(regions)} solution regions in {len(by_file)} files "
+              f"replaced, {len(TASKS)} tasks, {sum(t.points for t in TASKS)} points")
+        print(f"students: read {out / 'README.md'}; grade with `python -m pytest` inside {out}")
+    return regions
+
+
+def _refresh_starter_notes(out: Path):
+    """Re-quote the code excerpts of the starter's lecture notes from the starter's own sources, so
+    that the notes show the TODOs and no solution code."""
+    from .figures import chapters, refresh_excerpts
+
+    for path in chapters(out / "lecture_notes"):
+        text = path.read_text(encoding="utf-8")
+        path.write_text(refresh_excerpts(text, root=out), encoding="utf-8")
+
+
+def describe_not_implemented(error: BaseException) -> str:
+    """The one line `python -m demo` prints when starter code reaches a TODO."""
+    text = str(error)
+    return "not yet implemented: " + (text[len("TODO: "):] if text.startswith("TODO: ") else text)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        prog="python -m demo homework",
+        description="Write a homework starter copy of this project: every solution region in the solver is "
+                    "replaced by a TODO, plus a student README and the graded tests (grading/).")
+    parser.add_argument("--out", type=Path, default=Path("out") / "homework",
+                        help="folder to write the starter into (default: out/homework)")
+    parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    parser.add_argument("--list", action="store_true", help="list the tasks and their solution regions, write nothing")
+    args = parser.parse_args(argv)
+    if args.list:
+        regions = all_regions()
+        for task in TASKS:
+            print(f"{task.id:14s} {task.points:3d} points  {task.title}")
+            for r in regions:
+                if r.task is task:
+                    print(f"{'':20s}{r.path.as_posix()}:{r.start}-{r.end} {r.function} ({len(r.lines)} lines)")
+        return 0
+    generate(args.out, overwrite=args.overwrite)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""The benchmarks' --quick modes run and write sane CSVs; the baselines agree with the solver;
+a few stress-grid cells that run in seconds stay as regular tests. No timings are asserted."""
+import csv
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+
+def run_quick(module, out):
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--quick", "--no-progress",
+                           "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "|" in proc.stdout            # the printed summary table
+    return proc.stdout
+
+
+def rows(path):
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_pareto_quick(tmp_path):
+    run_quick("pareto", tmp_path)
+    data = rows(tmp_path / "pareto.csv")
+    assert {"case", "method", "iterations", "seconds", "error", "energy_gap"} <= set(data[0])
+    assert (tmp_path / "pareto.png").stat().st_size > 0
+    methods = {r["method"] for r in data}
+    assert {"VBD", "numpy VBD", "Newton", "Jacobi omega=1"} <= methods
+    for case in {r["case"] for r in data}:
+        vbd = [r for r in data if r["case"] == case and r["method"] == "VBD"]
+        errors = [float(r["error"]) for r in vbd]
+        assert errors[-1] < 1e-6 * errors[0]            # VBD converges to the Newton solution
+        assert all(float(r["seconds"]) >= 0 for r in vbd)
+        gaps = [float(r["energy_gap"]) for r in vbd]
+        assert min(gaps) > -1e-8                         # x* minimises G: nobody goes below it
+        newton = [r for r in data if r["case"] == case and r["method"] == "Newton"]
+        assert float(newton[-1]["error"]) == 0.0         # its last iterate is x* itself
+        numpy_vbd = [r for r in data if r["case"] == case and r["method"] == "numpy VBD"]
+        # same sweep, same iterates: the numpy errors equal the Taichi ones at the same iteration count
+        by_it = {r["iterations"]: float(r["error"]) for r in vbd}
+        for r in numpy_vbd:
+            if r["iterations"] in by_it and by_it[r["iterations"]] > 1e-9:
+                assert float(r["error"]) == pytest.approx(by_it[r["iterations"]], rel=1e-6)
+
+
+def test_throughput_quick(tmp_path):
+    run_quick("throughput", tmp_path)
+    data = rows(tmp_path / "throughput.csv")
+    assert {"tets", "precision", "threads", "n_colors", "ns_per_tet_iter", "coloring_s", "setup_s",
+            "numpy_ns_per_tet_iter", "newton_iter_s"} <= set(data[0])
+    assert {(r["precision"], r["threads"]) for r in data} == {("float64", "1"), ("float64", "2"),
+                                                              ("float32", "1"), ("float32", "2")}
+    for r in data:
+        assert 4 <= int(r["n_colors"]) <= 64
+        assert float(r["ns_per_tet_iter"]) > 0 and math.isfinite(float(r["ns_per_tet_iter"]))
+    assert any(r["numpy_ns_per_tet_iter"] for r in data)
+    fits = rows(tmp_path / "scaling_fit.csv")
+    assert all(math.isfinite(float(f["exponent_all"])) for f in fits)
+    assert (tmp_path / "throughput.png").exists()
+
+
+def test_stability_quick(tmp_path):
+    run_quick("stability", tmp_path)
+    data = rows(tmp_path / "stability.csv")
+    assert {"dt", "E", "nu", "state", "finite", "monotone", "recovers", "error"} <= set(data[0])
+    assert {r["state"] for r in data} == {"rest", "noise", "inverted", "flat", "velocity"}
+    assert all(r["finite"] == "True" and r["monotone"] == "True" for r in data)
+    assert (tmp_path / "stability.png").exists()
+
+
+def test_skip_quick(tmp_path):
+    run_quick("skip", tmp_path)
+    data = rows(tmp_path / "skip.csv")
+    by_check = {}
+    for r in data:
+        by_check.setdefault(r["check"], []).append(r)
+    plain = [r for r in by_check["kernels per step (10 iterations)"] if r["scene"] == "plain"][0]
+    assert "chebyshev" not in plain["value"].lower() and "_solve_color" in plain["value"]
+    cheb = [r for r in by_check["kernels per step (10 iterations)"] if r["scene"] == "Chebyshev"][0]
+    assert "_chebyshev: 10" in cheb["value"]
+    assert by_check["fixed vertices"][0]["ok"] == "True"
+    assert by_check["set-up: colouring"][0]["ok"] == "True"
+    assert by_check["stopping tolerance"][0]["ok"] == "True"
+
+
+# ---------------------------------------------------------------------------------------------
+# In-process checks (no subprocess): baselines and stress cells that run in seconds.
+# ---------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def solver_module():
+    import solver
+
+    solver.ensure_taichi("cpu")
+    return solver
+
+
+def test_numpy_vbd_matches_taichi_sweep(solver_module):
+    solver = solver_module
+    from benchmarks.baselines import NumpyVBD
+
+    mesh = solver.box_mesh(size=(1, .1, .1), cells=(10, 2, 2))
+    sim = solver.Simulation(mesh, solver.Material(1e5, 0.3, 1000.0), fixed=mesh.vertices[:, 0] < 1e-9,
+                            iterations=5)
+    sim.step()
+    sim.begin_step()
+    x0, y = sim.positions, sim.y.to_numpy()
+    sim.run_iterations(5)
+    x_taichi = sim.positions
+    sim.end_step()
+    x_numpy = NumpyVBD(sim).sweep(x0, y, 5)
+    assert np.abs(x_numpy - x_taichi).max() < 1e-12
+
+
+def test_jacobi_without_colouring_is_worse(solver_module):
+    """Updating all vertices at once from the same old positions overshoots: plain Jacobi ends far
+    from x*, where the coloured sweep converges."""
+    solver = solver_module
+    from benchmarks.baselines import JacobiSweep
+
+    mesh = solver.box_mesh(size=(1, .1, .1), cells=(10, 2, 2))
+    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), fixed=mesh.vertices[:, 0] < 1e-9)
+    x_n, x_star = sim.positions, sim.newton_reference()
+    sim.begin_step()
+    JacobiSweep(sim, 1.0).iterate(60)
+    err_jacobi = solver.relative_error(sim.positions, x_star, x_n)
+    sim.end_step()
+    sim.reset()
+    sim.begin_step()
+    sim.run_iterations(60)
+    err_vbd = solver.relative_error(sim.positions, x_star, x_n)
+    sim.end_step()
+    assert err_vbd < 1e-6 and err_jacobi > 1e3 * err_vbd
+
+
+@pytest.fixture(scope="module")
+def stress_runner(solver_module):
+    from benchmarks.stability import RESOLUTIONS, Runner
+
+    return Runner(RESOLUTIONS["coarse"], iterations=20, steps=3, recovery_rounds=5, recovery_iterations=200)
+
+
+@pytest.mark.parametrize("dt,E,nu,state", [
+    (1 / 60, 1e4, 0.3, "rest"),
+    (1 / 60, 1e4, 0.3, "noise"),
+    (1 / 60, 1e4, 0.3, "inverted"),
+    (1 / 10, 1e10, 0.45, "flat"),
+    (1 / 1000, 1e3, 0.0, "velocity"),
+    (1 / 10, 1e8, 0.499, "noise"),
+])
+def test_stress_cell_stays_finite_and_monotone(stress_runner, dt, E, nu, state):
+    out = stress_runner.cell(dt, E, nu, state)
+    assert out["finite"]
+    assert out["monotone"], out["max_rise"]
+
+
+@pytest.mark.parametrize("state", ["rest", "noise", "inverted"])
+def test_stress_cell_recovers_rest_shape(stress_runner, state):
+    out = stress_runner.cell(1 / 60, 1e4, 0.3, state)
+    assert out["recovers"], out

@@ -1,0 +1,89 @@
+"""The command line: outputs, video, overwrite protection, one-line errors."""
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import imageio.v3 as iio
+import pytest
+
+from demo.__main__ import main
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def one_line_error(capsys, argv, match):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and "Traceback" not in err, err
+    assert match in err, err
+
+
+def test_render_writes_frames_video_and_meshes(tmp_path, capsys):
+    out = tmp_path / "sweep"
+    argv = ["render", "stiffness_sweep", "--frames", "3", "--size", "64x48", "--out", str(out),
+            "--video", "mp4", "--export", "vtu", "--fps", "12"]
+    assert main(argv) == 0
+    assert f"wrote 3 frames to {out}" in capsys.readouterr().out
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_0001.png", "frame_0002.png"]
+    frames = iio.imread(out / "stiffness_sweep.mp4", index=None)
+    assert frames.shape == (3, 48, 64, 3)
+    assert len(list((out / "meshes").glob("*.vtu"))) == 6       # 3 frames x 2 panels
+    # a second run refuses to overwrite, --overwrite replaces
+    one_line_error(capsys, argv, "already exist; pass --overwrite")
+    assert main(argv + ["--overwrite"]) == 0
+
+
+def test_gif_and_surface_export(tmp_path):
+    out = tmp_path / "g"
+    assert main(["render", "twist", "--frames", "2", "--size", "48x32", "--out", str(out), "--video", "gif",
+                 "--export", "obj"]) == 0
+    assert iio.imread(out / "twist.gif", index=None).shape == (2, 32, 48, 3)
+    assert (out / "meshes" / "frame_0001_panel0.obj").stat().st_size > 0
+
+
+def test_existing_user_file_is_never_touched(tmp_path, capsys):
+    (tmp_path / "frame_0000.png").write_bytes(b"mine")
+    one_line_error(capsys, ["render", "colouring", "--frames", "1", "--out", str(tmp_path)], "--overwrite")
+    assert (tmp_path / "frame_0000.png").read_bytes() == b"mine"
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["render", "nope"], "unknown scene 'nope'"),
+    (["nope"], "unknown scene 'nope'"),
+    (["render", "--size", "12x"], "bad size '12x'"),
+    (["render", "--size", "4x4"], "between 16 and 8192"),
+    (["render", "--frames", "0"], "expected a positive whole number"),
+    (["render", "--video", "avi"], "invalid choice: 'avi'"),
+    (["render", "--arch", "tpu"], "invalid choice: 'tpu'"),
+    (["render", "--size", "65x48", "--video", "mp4"], "mp4 needs an even width and height"),
+    (["interactive", "nope"], "unknown scene 'nope'"),
+])
+def test_bad_arguments_give_one_line_errors(capsys, tmp_path, argv, match):
+    one_line_error(capsys, argv + ["--out", str(tmp_path)] if argv[0] == "render" else argv, match)
+
+
+def test_unwritable_output_folder(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    one_line_error(capsys, ["render", "colouring", "--frames", "1", "--out", str(blocker / "sub")],
+                   "cannot create output folder")
+
+
+def test_homework_and_figures_are_dispatched_lazily(monkeypatch):
+    seen = {}
+    for name in ("homework", "figures"):
+        module = types.ModuleType(f"demo.{name}")
+        module.main = lambda argv, name=name: seen.setdefault(name, argv) and 0
+        monkeypatch.setitem(sys.modules, f"demo.{name}", module)
+    assert main(["homework", "check", "--x"]) == 0
+    assert main(["figures"]) == 0
+    assert seen == {"homework": ["check", "--x"], "figures": []}
+
+
+def test_help_and_list_in_a_fresh_process():
+    run = lambda *a: subprocess.run([sys.executable, "-m", "demo", *a], cwd=REPO, capture_output=True, text=True)
+    helped = run("render", "--help")
+    assert helped.returncode == 0 and "(default: 1280x720)" in " ".join(helped.stdout.split())
+    listed = run("list")
+    assert listed.returncode == 0 and any(line.startswith("stiffness_sweep ") for line in listed.stdout.splitlines())

@@ -1,0 +1,108 @@
+"""The lecture notes stay true to the code: excerpts, generated numbers, figures, math."""
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from demo import figures
+from demo.errors import DemoError
+
+REPO = Path(__file__).resolve().parent.parent
+NOTES = REPO / "lecture_notes"
+CHAPTERS = ["01-implicit-euler.md", "02-newton.md", "03-coordinate-descent.md", "04-parallelism.md",
+            "05-information-propagation.md", "06-what-helps.md"]
+
+
+def numbers():
+    return json.loads((NOTES / "figures" / figures.NUMBERS).read_text())
+
+
+def test_chapters_follow_the_lecture_order():
+    assert [p.name for p in figures.chapters()] == CHAPTERS
+    index = (NOTES / "README.md").read_text()
+    for number, name in enumerate(CHAPTERS, start=1):
+        assert (NOTES / name).read_text().startswith(f"# {number}. ")
+        assert f"]({name})" in index
+
+
+def test_every_excerpt_matches_the_source_it_names():
+    quoted = set()
+    for path in figures.chapters():
+        text = path.read_text()
+        assert text.count("<!-- excerpt:") == len(figures.EXCERPT.findall(text)), \
+            f"{path.name}: an excerpt marker is not followed by a ```python block"
+        for match in figures.EXCERPT.finditer(text):
+            source = figures.function_source(REPO / match["path"], match["name"])
+            assert match["body"] == source, (f"{path.name}: the excerpt of {match['path']} {match['name']} no longer "
+                                             f"matches the source; run python -m demo figures --only excerpts")
+            quoted.add(match["name"])
+    # the homework's functions are all quoted where they are derived
+    assert {"vertex_force_hessian", "_greedy", "Simulation._solve_vertex", "Simulation._chebyshev"} <= quoted
+
+
+def test_generated_blocks_match_numbers_json():
+    assert figures.stale(numbers()) == []
+    for path in figures.chapters():
+        text = path.read_text()
+        assert "(run python -m demo figures)" not in text and "-->?<!--" not in text, path.name
+
+
+def test_every_figure_exists_and_is_small():
+    links = figures._figure_links(NOTES)
+    assert len(links) >= 10
+    total = 0
+    for link in links:
+        path = NOTES / link
+        assert path.exists(), f"missing {link}; run python -m demo figures"
+        total += path.stat().st_size
+        assert path.stat().st_size < 300_000, f"{link} is large"
+    assert total < 2_500_000
+    produced = {p.name for p in (NOTES / "figures").glob("*.png")}
+    assert produced == {Path(link).name for link in links}, "figures and notes disagree about which PNGs exist"
+
+
+@pytest.mark.parametrize("name", CHAPTERS)
+def test_math_delimiters_are_balanced(name):
+    text = (NOTES / name).read_text()
+    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    assert text.count("$$") % 2 == 0
+    assert text.replace("$$", "").count("$") % 2 == 0
+
+
+def test_check_command_passes_on_the_repository(capsys):
+    assert figures.main(["--check"]) == 0
+
+
+def test_a_changed_source_is_caught(tmp_path):
+    (tmp_path / "pkg").mkdir()
+    source = tmp_path / "pkg" / "mod.py"
+    source.write_text("class A:\n    @staticmethod\n    def f(x):\n        return x + 1\n")
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    chapter = notes / "01-x.md"
+    chapter.write_text("<!-- excerpt: pkg/mod.py A.f -->\n```python\nold\n```\n"
+                       "<!-- begin generated: t -->\nold\n<!-- end generated -->\nv = <!--v:n-->1<!--/v-->\n")
+    problems = figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path)
+    assert len(problems) == 3 and any("no longer matches" in p for p in problems)
+    figures.update_notes({"t": "new", "n": "2"}, notes, root=tmp_path)
+    text = chapter.read_text()
+    assert "@staticmethod\ndef f(x):\n    return x + 1\n```" in text
+    assert "<!-- begin generated: t -->\nnew\n<!-- end generated -->" in text and "<!--v:n-->2<!--/v-->" in text
+    assert figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path) == []
+    source.write_text(source.read_text().replace("x + 1", "x + 2"))
+    assert any("A.f no longer matches" in p for p in figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path))
+
+
+def test_unknown_section_is_an_error(tmp_path):
+    with pytest.raises(DemoError, match="unknown section"):
+        figures.main(["--only", "nope", "--out", str(tmp_path)])
+
+
+def test_excerpts_only_run_touches_no_figure(tmp_path):
+    notes = tmp_path / "notes"
+    shutil.copytree(NOTES, notes)
+    before = {p.name: p.read_bytes() for p in (notes / "figures").iterdir()}
+    assert figures.main(["--only", "excerpts", "--out", str(notes / "figures"), "--notes", str(notes)]) == 0
+    assert {p.name: p.read_bytes() for p in (notes / "figures").iterdir()} == before
