@@ -140,18 +140,21 @@ def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = 1e-10,
     result.history.append(NewtonRecord(0, G, float(np.abs(g).max()), 0.0))
     for it in range(1, max_iterations + 1):
         H = problem.hessian(x)[free_dofs][:, free_dofs]
-        d_free = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs])
         d = np.zeros(x.size)
-        d[free_dofs] = d_free
+        d[free_dofs] = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs])
         d = d.reshape(-1, 3)
+        if not np.isfinite(d).all():
+            break
         slope = float(np.dot(g.ravel(), d.ravel()))
         alpha = 1.0
-        while True:
+        while alpha >= 1e-10:
             x_new = x + alpha * d
             G_new = problem.energy(x_new)
-            if G_new <= G + 1e-4 * alpha * slope + 1e-15 * abs(G) or alpha < 1e-8:
+            if np.isfinite(G_new) and G_new <= G + 1e-4 * alpha * slope + 1e-15 * abs(G):
                 break
             alpha *= 0.5
+        else:
+            break   # no decrease along the Newton direction: keep x, report non-convergence
         x, G = x_new, G_new
         g = problem.gradient(x)
         result.history.append(NewtonRecord(it, G, float(np.abs(g).max()), time.perf_counter() - start))
@@ -163,5 +166,5 @@ def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = 1e-10,
             break
     result.x = x
     if not result.converged:
-        warnings.warn(f"Newton reference did not converge in {max_iterations} iterations", stacklevel=2)
+        warnings.warn(f"Newton reference did not converge ({result.iterations} iterations)", stacklevel=2)
     return result

@@ -112,7 +112,8 @@ class Simulation:
     initial_guess: an `InitialGuess`; chebyshev_rho: spectral radius estimate rho for Chebyshev
     acceleration (VBD Eq. 18-19), None for none; damping: k_d in s (VBD Eq. 10-11), 0 for none;
     ground: a `Ground` or None; tolerance: stop a step once max_i |f_i| falls below this fraction of
-    its value at the initial guess; kinematic: vertices whose positions `kinematic_motion(t, rest)`
+    the larger of its value at the initial guess and the heaviest vertex's weight max_i m_i |g|
+    (or to round-off level), checked every `check_every` iterations (each check costs about one iteration); kinematic: vertices whose positions `kinematic_motion(t, rest)`
     scripts, rest being their (K, 3) rest positions and the result their (K, 3) positions at time t;
     precision: "float64" or "float32"; arch: "cpu" or "gpu"; record_history: keep G and max |f_i|
     after every iteration of the last step in `history`.
@@ -121,7 +122,7 @@ class Simulation:
     def __init__(self, mesh: TetMesh, material: Material, dt: float = 1 / 60, gravity=(0.0, 0.0, -9.81),
                  fixed=None, iterations: int = 100, initial_guess: InitialGuess = InitialGuess.ADAPTIVE,
                  chebyshev_rho: Optional[float] = None, damping: float = 0.0, ground: Optional[Ground] = None,
-                 tolerance: Optional[float] = None, kinematic=None,
+                 tolerance: Optional[float] = None, check_every: int = 5, kinematic=None,
                  kinematic_motion: Optional[Callable] = None, precision="float64", arch: str = "cpu",
                  coloring_order: VertexOrder = VertexOrder.NATURAL, record_history: bool = False):
         if not isinstance(mesh, TetMesh):
@@ -149,6 +150,7 @@ class Simulation:
         self.damping = float(damping)
         self.ground = ground
         self.tolerance = None if tolerance is None else _positive(tolerance, "tolerance", "(relative)")
+        self.check_every = _count(check_every, "check_every")
         self.precision = as_precision(precision)
         self.record_history = bool(record_history)
         n = mesh.n_vertices
@@ -372,7 +374,12 @@ class Simulation:
         if self.chebyshev_rho is not None:
             self._chebyshev_start()
         self._omega = 1.0
-        self._residual0 = self.max_residual() if self.tolerance is not None else None
+        self._stop_below = None
+        if self.tolerance is not None:
+            weight = float(self.masses.max() * np.linalg.norm(self.gravity))
+            eps = np.finfo(np.float64 if self.dtype == ti.f64 else np.float32).eps
+            roundoff = 100 * eps * self.material.mu * float(np.mean(self._rest_vol)) ** (2 / 3)
+            self._stop_below = max(self.tolerance * max(self.max_residual(), weight), roundoff)
         if self.record_history:
             self.history.append(IterationRecord(0, self.energy(), self.max_residual()))
 
@@ -388,7 +395,8 @@ class Simulation:
             ran += 1
             if self.record_history:
                 self.history.append(IterationRecord(self._iteration, self.energy(), self.max_residual()))
-            if self._residual0 is not None and self.max_residual() <= self.tolerance * self._residual0:
+            if (self._stop_below is not None and self._iteration % self.check_every == 0
+                    and self.max_residual() <= self._stop_below):
                 break
         self.last_iterations = self._iteration
         return ran

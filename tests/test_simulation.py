@@ -198,16 +198,23 @@ def test_chebyshev_acceleration_lowers_the_error_for_the_same_iterations():
 
 
 def test_tolerance_stops_early_and_history_records_each_iteration():
-    sim = cantilever(1e4, iterations=500, tolerance=1e-6, record_history=True,
+    sim = cantilever(1e4, iterations=500, tolerance=1e-6, check_every=3, record_history=True,
                      initial_guess=solver.InitialGuess.INERTIAL)
     sim.begin_step()
     sim.run_iterations(sim.iterations)
-    assert 1 < sim.last_iterations < 500
+    assert 1 < sim.last_iterations < 500 and sim.last_iterations % 3 == 0
     history = sim.history
     assert len(history) == sim.last_iterations + 1
-    assert history[-1].max_residual <= 1e-6 * history[0].max_residual
+    scale = max(history[0].max_residual, sim.masses.max() * 9.81)
+    assert history[-1].max_residual <= 1e-6 * scale < history[-4].max_residual
     assert history[-1].energy < history[0].energy
     sim.end_step()
+
+
+def test_a_step_that_starts_converged_stops_at_the_first_check():
+    sim = cantilever(1e4, iterations=100, tolerance=1e-3, check_every=1, gravity=(0, 0, 0))
+    sim.step()
+    assert sim.last_iterations == 1
 
 
 def test_damping_removes_energy_from_a_vibrating_bar():
