@@ -65,6 +65,18 @@ def start_state(state, X, free, rng):
     return x, v
 
 
+def newton_or_none(solver, problem, x0, max_iterations):
+    """The global Newton solve, or None when it breaks down (see the README: its line search can
+    accept a non-finite iterate on extreme cells, and the next Hessian fails)."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = solver.newton_solve(problem, x0, tolerance=1e-10, max_iterations=max_iterations)
+    except (np.linalg.LinAlgError, ValueError, RuntimeError):
+        return None
+    return res if np.isfinite(res.x).all() else None
+
+
 def aligned_deviation(x, X):
     """max_i |R x_i + t - X_i| for the rotation R and translation t that best map x onto X."""
     xc, Xc = x - x.mean(axis=0), X - X.mean(axis=0)
@@ -119,10 +131,8 @@ class Runner:
         out = dict(tets=mesh.n_tets, dt=dt, E=E, nu=nu, state=state)
         # Newton reference of the first step.
         problem = sim.step_problem()
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ref = solver.newton_solve(problem, problem.y_with_constraints(), tolerance=1e-10, max_iterations=100)
-        out["newton_converged"] = bool(ref.converged)
+        ref = newton_or_none(solver, problem, problem.y_with_constraints(), 100)
+        out["newton_converged"] = bool(ref is not None and ref.converged)
         finite, rise = True, 0.0
         for step in range(self.steps):
             sim.begin_step()
@@ -135,9 +145,11 @@ class Runner:
                     break
             x = sim.positions
             if step == 0:
-                moved = np.linalg.norm(ref.x - x0)
+                moved = np.linalg.norm(ref.x - x0) if ref is not None else 0.0
                 out["error"] = (float("inf") if not np.isfinite(x).all() else
                                 solver.relative_error(x, ref.x, x0) if moved > 1e-9 else float("nan"))
+                if ref is None or not ref.converged:
+                    out["error"] = float("nan")     # no trustworthy reference
             sim.end_step()
             if not finite or not np.isfinite(x).all():
                 finite = False
@@ -187,9 +199,10 @@ class Runner:
         problem = sim.step_problem()
         for _ in range(self.recovery_rounds):
             problem = dataclasses.replace(problem, y=x.copy(), constrained_positions=x.copy())
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                x = solver.newton_solve(problem, x, tolerance=1e-10, max_iterations=50).x
+            res = newton_or_none(solver, problem, x, 50)
+            if res is None:
+                return False
+            x = res.x
             if aligned_deviation(x, X) <= 1e-3 and min_J(x, self.mesh) > 0:
                 return True
         return False

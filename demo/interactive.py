@@ -14,7 +14,7 @@ import solver
 from . import colours, scenes
 from .errors import DemoError
 from .render import GHOST_COLOUR
-from .runner import PanelSim
+from .runner import GhostMode, PanelSim
 from .scenes import Advance
 
 HELP = ("space play/pause | n step | i one iteration | r reset | left-drag a vertex | "
@@ -53,7 +53,7 @@ class InteractiveApp:
     def load(self, scene_name):
         """Switch to a scene: new simulations, new GPU buffers (allocated here, not per frame)."""
         self.scene = scenes.get(scene_name)
-        self.panels = [PanelSim(self.scene, p, self.arch) for p in self.scene.panels]
+        self.panels = [PanelSim(self.scene, p, self.arch, ghost_mode=GhostMode.STEP) for p in self.scene.panels]
         self.show_ghost = False
         for p in self.panels:
             p.ghost_enabled = False
@@ -75,7 +75,8 @@ class InteractiveApp:
         self.dt = first.sim.dt
         self.rho = first.panel.chebyshev_rho or 0.0
         cam = self.scene.camera
-        centre = np.mean([o for o in self.offsets], axis=0)
+        # look a little to the left of the bodies so they sit right of the controls panel
+        centre = np.mean([o for o in self.offsets], axis=0) - np.array([0.25 * max(extent, 0.5), 0.0, 0.0])
         self.camera.position(*(np.asarray(cam.eye) + centre))
         self.camera.lookat(*(np.asarray(cam.target) + centre))
         self.camera.up(*cam.up)
@@ -126,7 +127,8 @@ class InteractiveApp:
         rho = float(rho)
         if (rho > 0) != (self.rho > 0):
             self.panels = [PanelSim(self.scene, dataclasses.replace(p.panel, chebyshev_rho=rho if rho > 0 else None,
-                                                                    iterations=self.iterations), self.arch)
+                                                                    iterations=self.iterations), self.arch,
+                                    ghost_mode=GhostMode.STEP)
                            for p in self.panels]
             for p in self.panels:
                 p.ghost_enabled = self.show_ghost
@@ -214,7 +216,9 @@ class InteractiveApp:
 
     def _controls(self):
         gui = self.window.get_gui()
-        with gui.sub_window("VBD", 0.01, 0.01, 0.3, 0.62) as w:
+        with gui.sub_window("help", 0.0, 0.91, 1.0, 0.09) as w:
+            w.text(HELP)
+        with gui.sub_window("VBD", 0.01, 0.01, 0.27, 0.88) as w:
             w.text(f"scene: {self.scene.name}")
             if w.button("pause" if self.playing else "play"):
                 self.toggle_play()
@@ -294,9 +298,15 @@ class InteractiveApp:
             self.frame()
             if self.show_window:
                 self.window.show()
+            else:
+                # off screen, reading the image back is what finishes the frame (and clears the
+                # scene's draw list for the next one); without it every frame is drawn on top
+                self._last_image = self.window.get_image_buffer_as_numpy()
 
     def image(self):
-        """The last drawn frame as an RGB float array (height, width, 3)."""
+        """The last drawn frame as a float RGBA array (width, height, 4), as GGUI returns it."""
+        if not self.show_window and getattr(self, "_last_image", None) is not None:
+            return self._last_image
         return self.window.get_image_buffer_as_numpy()
 
 

@@ -7,10 +7,14 @@ The renderer draws the boundary triangles of one or more tet meshes into an RGB 
    with an atomic min. Positive float32 values order like their bit patterns, so the key is a
    z-buffer whose ties are broken by triangle index: the result does not depend on thread order,
    which makes every image bit-for-bit reproducible.
-2. ``_shade`` runs one thread per pixel. It decodes the winning triangle, interpolates the vertex
-   colours with perspective-correct barycentric weights, applies the triangle's light factor,
-   draws a reference grid plane (the ground, or a back wall) where it is nearer than the mesh,
-   and blends a translucent, outlined "ghost" mesh (the Newton reference) on top.
+2. ``_background`` paints the sky gradient and the reference grid plane (the ground, or a back
+   wall) procedurally, one ray-plane intersection per pixel. It depends only on the camera, the
+   grid and the viewport, so it is computed once and reused while those stay the same.
+3. ``_shade`` runs one thread per image row. Each pixel decodes its winning triangle, interpolates
+   the vertex colours with perspective-correct barycentric weights and applies the triangle's light
+   factor (the body replaces the background, so the grid needs no depth test), and blends a
+   translucent, outlined "ghost" mesh (the reference solution) on top. Uncovered pixels copy the
+   background.
 
 Text, legends and panel borders are drawn afterwards with Pillow (see ``demo.compose``).
 Buffers are allocated once per ``Renderer``; the kernels take ndarray arguments, so they are
@@ -161,85 +165,111 @@ def _decode_depth(k):
 
 
 @ti.kernel
-def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), key: ti.types.ndarray(dtype=ti.i64, ndim=2),
-           screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
-           colours: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
-           ghost_key: ti.types.ndarray(dtype=ti.i64, ndim=2), ghost_light: ti.types.ndarray(dtype=ti.f32, ndim=1),
-           has_ghost: ti.i32, frame: ti.types.ndarray(dtype=ti.f32, ndim=2), focal: ti.f32,
-           grid: ti.types.ndarray(dtype=ti.f32, ndim=1), has_grid: ti.i32, nearest: ti.i32,
-           x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
-    empty = ti.i64(9223372036854775807)
+def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                focal: ti.f32, grid: ti.types.ndarray(dtype=ti.f32, ndim=1), has_grid: ti.i32,
+                x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
+    """The vertical gradient and, procedurally per pixel, the grid plane (a ray-plane intersection).
+
+    It depends only on the camera, the grid and the viewport, so ``Renderer`` computes it once and
+    keeps it while those stay the same. Where the body covers a pixel it replaces this colour, so
+    the grid needs no depth test against the body.
+    """
     cx = 0.5 * ti.cast(x0 + x1, ti.f32)
     cy = 0.5 * ti.cast(y0 + y1, ti.f32)
     eye = ti.Vector([frame[3, 0], frame[3, 1], frame[3, 2]])
     right = ti.Vector([frame[0, 0], frame[0, 1], frame[0, 2]])
     up = ti.Vector([frame[1, 0], frame[1, 1], frame[1, 2]])
     forward = ti.Vector([frame[2, 0], frame[2, 1], frame[2, 2]])
-    for r, c in ti.ndrange((y0, y1), (x0, x1)):
-        px = ti.cast(c, ti.f32) + 0.5
+    top = ti.Vector([BACKGROUND_TOP[0], BACKGROUND_TOP[1], BACKGROUND_TOP[2]], ti.f32)
+    bottom = ti.Vector([BACKGROUND_BOTTOM[0], BACKGROUND_BOTTOM[1], BACKGROUND_BOTTOM[2]], ti.f32)
+    grid_colour = ti.Vector(GRID_COLOUR, ti.f32)
+    normal = ti.Vector([grid[3], grid[4], grid[5]])
+    point = ti.Vector([grid[0], grid[1], grid[2]])
+    spacing = grid[6]
+    plane = (point - eye).dot(normal)
+    for r in range(y0, y1):     # one thread per row, columns in order
         py = ti.cast(r, ti.f32) + 0.5
         t = (py - ti.cast(y0, ti.f32)) / ti.cast(y1 - y0, ti.f32)
-        rgb = ti.Vector([BACKGROUND_TOP[0], BACKGROUND_TOP[1], BACKGROUND_TOP[2]]) * (1.0 - t) + \
-            ti.Vector([BACKGROUND_BOTTOM[0], BACKGROUND_BOTTOM[1], BACKGROUND_BOTTOM[2]]) * t
-        k = key[r, c]
-        key[r, c] = empty    # ready for the next draw
-        mesh_depth = 3.0e38
-        if k != empty:
-            mesh_depth = _decode_depth(k)
-        if has_grid != 0:
-            ray = (forward + right * ((px - cx) / focal) - up * ((py - cy) / focal))
-            normal = ti.Vector([grid[3], grid[4], grid[5]])
-            denom = ray.dot(normal)
-            if ti.abs(denom) > 1e-6:
-                point = ti.Vector([grid[0], grid[1], grid[2]])
-                s = (point - eye).dot(normal) / denom
-                if s > 0.0 and s < mesh_depth:
-                    hit = eye + ray * s
-                    spacing = grid[6]
-                    # line width grows with distance so lines stay about one pixel wide
-                    width = 1.2 * s / focal
-                    line = 0.0
-                    for d in ti.static(range(3)):
-                        if ti.abs(normal[d]) < 0.5:
-                            u = hit[d] / spacing
-                            dist = ti.abs(u - ti.round(u)) * spacing
-                            line = ti.max(line, ti.max(0.0, 1.0 - dist / width))
-                    fade = 1.0 / (1.0 + 0.3 * s)
-                    rgb = rgb * (1.0 - 0.6 * line * fade) + ti.Vector(GRID_COLOUR) * (0.6 * line * fade)
-        if k != empty:
-            f = ti.cast(k & ti.i64(0xFFFFFFFF), ti.i32)
-            w = _corner_weights(screen, faces, f, px, py)
-            if nearest != 0:
-                # each pixel takes the colour of the nearest corner: vertices become patches
-                best = 0
-                if w[1] > w[best]:
-                    best = 1
-                if w[2] > w[best]:
-                    best = 2
-                w = ti.Vector([0.0, 0.0, 0.0])
-                w[best] = 1.0
-            base = ti.Vector([0.0, 0.0, 0.0])
+        sky = top * (1.0 - t) + bottom * t
+        for c in range(x0, x1):
+            px = ti.cast(c, ti.f32) + 0.5
+            rgb = sky
+            if has_grid != 0:
+                ray = forward + right * ((px - cx) / focal) - up * ((py - cy) / focal)
+                denom = ray.dot(normal)
+                if ti.abs(denom) > 1e-6:
+                    s = plane / denom
+                    if s > 0.0:
+                        hit = eye + ray * s
+                        # line width grows with distance so lines stay about one pixel wide
+                        width = ti.cast(1.2, ti.f32) * s / focal
+                        line = ti.cast(0.0, ti.f32)
+                        for d in ti.static(range(3)):
+                            if ti.abs(normal[d]) < 0.5:
+                                u = hit[d] / spacing
+                                dist = ti.abs(u - ti.round(u)) * spacing
+                                line = ti.max(line, ti.max(0.0, 1.0 - dist / width))
+                        a = ti.cast(0.6, ti.f32) * line / (1.0 + ti.cast(0.3, ti.f32) * s)
+                        rgb = sky * (1.0 - a) + grid_colour * a
             for j in ti.static(range(3)):
-                v = faces[f, j]
-                base += w[j] * ti.Vector([colours[v, 0], colours[v, 1], colours[v, 2]])
-            rgb = base * light[f]
-        if has_ghost != 0:
-            g = ghost_key[r, c]
-            if g != empty:
-                gf = ti.cast(g & ti.i64(0xFFFFFFFF), ti.i32)
-                ghost = ti.Vector(GHOST_COLOUR) * ghost_light[gf]
-                edge = 0
-                if r > y0 and r < y1 - 1 and c > x0 and c < x1 - 1:
-                    if ghost_key[r - 1, c] == empty or ghost_key[r + 1, c] == empty or \
-                            ghost_key[r, c - 1] == empty or ghost_key[r, c + 1] == empty:
-                        edge = 1
-                if edge == 1:
-                    rgb = ti.Vector(GHOST_COLOUR) * 0.8
-                elif k == empty:
-                    # translucent where the body is not; over the body only the outline shows
-                    rgb = rgb * (1.0 - GHOST_ALPHA) + ghost * GHOST_ALPHA
-        for j in ti.static(range(3)):
-            image[r, c, j] = ti.cast(ti.min(255.0, ti.max(0.0, rgb[j] * 255.0 + 0.5)), ti.u8)
+                background[r, c, j] = ti.cast(ti.min(255.0, ti.max(0.0, rgb[j] * 255.0 + 0.5)), ti.u8)
+
+
+@ti.kernel
+def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), background: ti.types.ndarray(dtype=ti.u8, ndim=3),
+           key: ti.types.ndarray(dtype=ti.i64, ndim=2),
+           screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
+           colours: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           ghost_key: ti.types.ndarray(dtype=ti.i64, ndim=2), ghost_light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           has_ghost: ti.i32, nearest: ti.i32, x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
+    # one thread per row, columns in order: cheaper on the CPU than a flattened 2D range
+    empty = ti.i64(9223372036854775807)
+    for r in range(y0, y1):
+        py = ti.cast(r, ti.f32) + 0.5
+        for c in range(x0, x1):
+            k = key[r, c]
+            g = empty
+            if has_ghost != 0:
+                g = ghost_key[r, c]
+            if k == empty and g == empty:
+                for j in ti.static(range(3)):
+                    image[r, c, j] = background[r, c, j]
+            else:
+                px = ti.cast(c, ti.f32) + 0.5
+                rgb = ti.Vector([ti.cast(background[r, c, j], ti.f32) for j in ti.static(range(3))]) / 255.0
+                if k != empty:
+                    key[r, c] = empty    # ready for the next draw
+                    f = ti.cast(k & ti.i64(0xFFFFFFFF), ti.i32)
+                    w = _corner_weights(screen, faces, f, px, py)
+                    if nearest != 0:
+                        # each pixel takes the colour of the nearest corner: vertices become patches
+                        best = 0
+                        if w[1] > w[best]:
+                            best = 1
+                        if w[2] > w[best]:
+                            best = 2
+                        w = ti.Vector([0.0, 0.0, 0.0])
+                        w[best] = 1.0
+                    base = ti.Vector([0.0, 0.0, 0.0])
+                    for j in ti.static(range(3)):
+                        v = faces[f, j]
+                        base += w[j] * ti.Vector([colours[v, 0], colours[v, 1], colours[v, 2]])
+                    rgb = base * light[f]
+                if g != empty:
+                    gf = ti.cast(g & ti.i64(0xFFFFFFFF), ti.i32)
+                    ghost = ti.Vector(GHOST_COLOUR) * ghost_light[gf]
+                    edge = 0
+                    if r > y0 and r < y1 - 1 and c > x0 and c < x1 - 1:
+                        if ghost_key[r - 1, c] == empty or ghost_key[r + 1, c] == empty or \
+                                ghost_key[r, c - 1] == empty or ghost_key[r, c + 1] == empty:
+                            edge = 1
+                    if edge == 1:
+                        rgb = ti.Vector(GHOST_COLOUR) * 0.8
+                    elif k == empty:
+                        # translucent where the body is not; over the body only the outline shows
+                        rgb = rgb * (1.0 - GHOST_ALPHA) + ghost * GHOST_ALPHA
+                for j in ti.static(range(3)):
+                    image[r, c, j] = ti.cast(ti.min(255.0, ti.max(0.0, rgb[j] * 255.0 + 0.5)), ti.u8)
 
 
 @dataclass
@@ -263,6 +293,8 @@ class Renderer:
         self._ghost_key = ti.ndarray(ti.i64, shape=(self.height, self.width))
         # a NumPy image is written in place by the CPU backend (no copy back)
         self._image = np.zeros((self.height, self.width, 3), np.uint8)
+        self._background = np.zeros((self.height, self.width, 3), np.uint8)
+        self._background_of = {}    # viewport box -> (camera frame, focal, grid) its background was drawn for
         self._scratch = {}
         _clear(self._key, 0, 0, self.width, self.height)
         self._no_light = np.zeros(1, np.float32)
@@ -290,14 +322,30 @@ class Renderer:
                      ghost_screen, ghost_light)
             _clear(self._ghost_key, *box)
             _rasterise(ghost_screen, faces, self._ghost_key, *box)
+        self._ensure_background(box, frame, focal, grid)
+        colours = np.ascontiguousarray(body.colours, dtype=np.float32)
+        _shade(self._image, self._background, self._key, screen, faces, colours, light, self._ghost_key, ghost_light,
+               int(has_ghost), int(body.nearest_vertex), *box)
+
+    def forget_background(self):
+        """Drop the cached gradient + grid, so the next draw recomputes it (benchmarks use this)."""
+        self._background_of = {}
+
+    def _ensure_background(self, box, frame, focal, grid):
+        """Gradient + grid of a viewport, recomputed only when its camera, grid or box changes."""
+        signature = (frame.tobytes(), float(focal), grid)
+        if self._background_of.get(box) == signature:
+            return
         grid_data = self._no_grid
         if grid is not None:
             normal = np.asarray(grid.normal, float) / np.linalg.norm(grid.normal)
             grid_data = np.array([*grid.point, *normal, grid.spacing], np.float32)
-        colours = np.ascontiguousarray(body.colours, dtype=np.float32)
-        _shade(self._image, self._key, screen, faces, colours, light, self._ghost_key, ghost_light,
-               int(has_ghost), frame, float(focal), grid_data, int(grid is not None),
-               int(body.nearest_vertex), *box)
+        _background(self._background, frame, float(focal), grid_data, int(grid is not None), *box)
+        x0, y0, x1, y1 = box
+        # a viewport drawn over another one invalidates the other's cached background
+        self._background_of = {b: sig for b, sig in self._background_of.items()
+                               if b[2] <= x0 or x1 <= b[0] or b[3] <= y0 or y1 <= b[1]}
+        self._background_of[box] = signature
 
     def image(self):
         """A copy of the current image as an (height, width, 3) uint8 array."""

@@ -1,4 +1,5 @@
 """Turn a ``Scene`` into running simulations and, frame by frame, into what should be drawn."""
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -8,8 +9,16 @@ import solver
 from . import colours
 from .scenes import Advance, ColourBy
 
-# Newton steps below 1e-7 of the body size: x* to about a micrometre, far below what a frame shows
-NEWTON_TOLERANCE = 1e-7
+# Newton stops once its step is below 1e-6 of the body size (a micrometre on a 1 m bar): far below
+# what a frame shows, and a warm start from the VBD result gets there in two to four iterations
+NEWTON_TOLERANCE = 1e-6
+
+
+class GhostMode:
+    """What the translucent ghost of a panel shows."""
+
+    TRAJECTORY = "trajectory"   # the converged implicit-Euler trajectory, advanced by Newton every step
+    STEP = "step"               # x*, the converged Newton solution of the step VBD is taking now
 
 
 @dataclass
@@ -19,53 +28,127 @@ class PanelState:
     positions: np.ndarray
     faces: np.ndarray
     colours: np.ndarray
-    ghost: np.ndarray       # Newton reference positions, or None
+    ghost: np.ndarray       # reference positions, or None
     lines: list             # label lines
-    error: float            # relative error against the Newton reference, or None
+    error: float            # relative error of this step against its Newton solution x*, or None
 
 
 class PanelSim:
-    """The simulation of one panel, plus its boundary surface for drawing."""
+    """The simulation of one panel, plus its boundary surface for drawing.
 
-    def __init__(self, scene, panel, arch="cpu"):
+    With ``ghost_enabled``, every step is measured against x*, the converged Newton solution of the
+    same step from the same state (started at the VBD result or at y, whichever is lower in G, so it
+    usually costs a few Newton iterations): ``error`` = ||x - x*|| / ||x* - x_n||. In ``GhostMode.TRAJECTORY`` (time-step
+    scenes) the ghost is a second simulation with identical settings that is advanced every step
+    by a converged Newton solve of its own step: what implicit Euler would do with an exact solver.
+    In ``GhostMode.STEP`` (iteration-by-iteration scenes and the interactive window) the ghost is x*.
+    """
+
+    def __init__(self, scene, panel, arch="cpu", ghost_mode=None):
         self.scene, self.panel = scene, panel
         mesh = panel.mesh.build()
         self.faces = np.ascontiguousarray(mesh.boundary_faces(), dtype=np.int32)
         self.tets = np.asarray(mesh.tets)
         self.ghost_enabled = panel.newton_ghost
+        if ghost_mode is None:
+            ghost_mode = GhostMode.STEP if scene.advance is Advance.ITERATIONS else GhostMode.TRAJECTORY
+        self.ghost_mode = ghost_mode
         fixed = _mask(panel.fixed, mesh.vertices)
         kinematic = _mask(panel.kinematic, mesh.vertices)
-        self.sim = solver.Simulation(
-            mesh, panel.material, dt=scene.dt, gravity=scene.gravity,
+        self._settings = dict(
+            mesh=mesh, material=panel.material, dt=scene.dt, gravity=scene.gravity,
             fixed=fixed if fixed.any() else None, iterations=panel.iterations,
             initial_guess=panel.initial_guess, chebyshev_rho=panel.chebyshev_rho,
             damping=scene.damping, ground=scene.ground,
             kinematic=kinematic if kinematic.any() else None,
             kinematic_motion=panel.motion if kinematic.any() else None, arch=arch)
+        self.sim = solver.Simulation(**self._settings)
+        self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
+        self.rest_tip_height = float(mesh.vertices[self.tip, 2].mean())
+        self.reference = None       # the trajectory ghost's simulation, built on first use
+        self.reference_source = None    # an earlier panel whose trajectory ghost is this one's too
         self.reset()
 
     def reset(self):
         self.sim.reset()
+        if self.reference is not None:
+            self.reference.reset()
+        self.reference_synced = self.reference is not None
         self.start = self.sim.positions     # x_n, the positions at the start of the current step
         self.ghost = None
         self.error = None
+        self.error_converged = True
         self.iteration = 0
         self.in_step = False
 
     def step(self):
-        """One full time step, measured against the Newton reference when the panel shows one."""
+        """One full time step, measured against the Newton solution of the same step when enabled."""
         self.finish_step()
         self.start = self.sim.positions
-        self.ghost = self.sim.newton_reference(tolerance=NEWTON_TOLERANCE) if self.ghost_enabled else None
+        problem = self.sim.step_problem() if self.ghost_enabled else None
+        if self.ghost_enabled and self.ghost_mode == GhostMode.TRAJECTORY and not self._shares_reference_next():
+            self._sync_reference()
         self.sim.step()
         self.iteration = self.sim.iterations
-        self._measure()
+        if problem is None:
+            self.ghost, self.error = None, None
+            # a step without the reference breaks its trajectory: when the ghost is switched back on,
+            # the reference restarts from the body's state then (so its first ghost is x* of that step)
+            self.reference_synced = False
+            return
+        x_star, self.error_converged = _newton(problem, self.sim.positions)
+        self.error = solver.relative_error(self.sim.positions, x_star, self.start)
+        if self.ghost_mode != GhostMode.TRAJECTORY:
+            self.ghost = x_star
+        elif self._shares_reference():
+            self.ghost = self.reference_source.ghost
+        else:
+            self.ghost = self._advance_reference()
+
+    def _shares_reference_next(self):
+        src = self.reference_source
+        return src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
+
+    def _shares_reference(self):
+        """True when an earlier panel with the same body, material and time step already advanced the
+        converged trajectory this frame (the iteration budget does not change a converged solve)."""
+        src = self.reference_source
+        return (src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
+                and src.ghost is not None and src.sim.frame == self.sim.frame and src.sim.dt == self.sim.dt)
+
+    def _sync_reference(self):
+        """Start the reference trajectory from the current state (first use, or after a reset)."""
+        if self.reference is None:
+            self.reference = solver.Simulation(**self._settings)
+        if not self.reference_synced:
+            self.reference.reset()
+            self.reference.set_positions(self.sim.positions)
+            self.reference.set_velocities(self.sim.velocities)
+            self.reference.time, self.reference.frame = self.sim.time, self.sim.frame
+            self.reference_synced = True
+
+    def _advance_reference(self):
+        """One converged implicit-Euler step of the reference from its own state."""
+        self._sync_reference()      # a no-op unless the reference has never run (or was reset)
+        ref = self.reference
+        problem = ref.step_problem()
+        x_n = ref.positions
+        x, _ = _newton(problem, self.sim.positions)
+        ref.set_positions(x)
+        ref.set_velocities((x - x_n) / ref.dt)
+        ref.time += ref.dt
+        ref.frame += 1
+        return x
 
     def iterate(self, count=1):
         """``count`` more iterations of the current time step (opening one if needed)."""
         if not self.in_step:
             self.start = self.sim.positions
-            self.ghost = self.sim.newton_reference(tolerance=NEWTON_TOLERANCE) if self.ghost_enabled else None
+            self.ghost = None
+            if self.ghost_enabled:
+                problem = self.sim.step_problem()
+                self.ghost = solver.newton_solve(problem, problem.y_with_constraints(),
+                                                 tolerance=NEWTON_TOLERANCE).x
             self.sim.begin_step()
             self.iteration = 0
             self.in_step = True
@@ -79,8 +162,11 @@ class PanelSim:
         if self.in_step:
             self.sim.end_step()
             self.in_step = False
+            # the reference trajectory no longer starts where the body is
+            self.reference_synced = False
 
     def _measure(self):
+        self.error = None
         if self.ghost is not None:
             self.error = solver.relative_error(self.sim.positions, self.ghost, self.start)
 
@@ -101,8 +187,13 @@ class PanelSim:
             lines.append(f"iteration {self.iteration}")
         elif by is not ColourBy.COLOUR_SETS:
             lines.append(f"{self.panel.iterations} iterations, dt = {_fraction(self.scene.dt)} s, t = {self.sim.time:.2f} s")
+        if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
+            tip = self.tip
+            drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
+            lines.append(f"tip drop {100 * drop(x):.0f} cm (ghost {100 * drop(self.ghost):.0f} cm)")
         if self.error is not None:
-            lines.append(f"relative error {self.error:.3f}")
+            unsure = "" if self.error_converged else " (Newton not converged: approximate)"
+            lines.append(f"relative error {self.error:.3f}{unsure}")
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error)
 
 
@@ -112,6 +203,11 @@ class SceneRunner:
     def __init__(self, scene, arch="cpu"):
         self.scene = scene
         self.panels = [PanelSim(scene, panel, arch) for panel in scene.panels]
+        for i, p in enumerate(self.panels):
+            for q in self.panels[:i]:
+                if q.reference_source is None and _same_body(p.panel, q.panel):
+                    p.reference_source = q
+                    break
         self.frame = 0
 
     def advance(self):
@@ -122,6 +218,24 @@ class SceneRunner:
                 p.step()
         self.frame += 1
         return [p.state() for p in self.panels]
+
+
+def _newton(problem, guess):
+    """x*, the converged minimiser of the step's G, started from whichever of the inertial prediction y
+    and ``guess`` (the VBD result) is lower in G: a VBD result that has converged (soft body) puts
+    Newton next to the answer; one that has not (stiff body) can be a worse start than y."""
+    y = problem.y_with_constraints()
+    guess = np.where(problem.free[:, None], guess, problem.constrained_positions)
+    start = guess if problem.energy(guess) < problem.energy(y) else y
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)    # reported in the label instead
+        result = solver.newton_solve(problem, start, tolerance=NEWTON_TOLERANCE)
+    return result.x, result.converged
+
+
+def _same_body(a, b):
+    """Panels whose converged trajectories are identical: only the VBD settings differ."""
+    return (a.mesh, a.material, a.fixed, a.kinematic, a.motion) == (b.mesh, b.material, b.fixed, b.kinematic, b.motion)
 
 
 def _mask(selectors, vertices):

@@ -70,6 +70,24 @@ def test_ghost_and_viewports(bar):
     np.testing.assert_array_equal(image[:, :32], image[:, 32:])
 
 
+def test_cached_background_follows_the_camera(bar):
+    """The gradient + grid is cached per viewport; a new camera or grid must redraw it."""
+    near = Camera(eye=(0.5, -2.0, 0.05), target=(0.5, 0.0, 0.05), fov_degrees=40)
+    far = Camera(eye=(0.5, -3.0, 0.6), target=(0.5, 0.0, 0.0), fov_degrees=50)
+    vertices, faces = bar
+    body = Body(vertices, faces, colours.uniform(len(vertices)))
+    reused = Renderer(64, 48)
+    reused.draw(body, near, grid=GridPlane())
+    reused.draw(body, far, grid=GridPlane(spacing=0.05))
+    fresh = Renderer(64, 48)
+    fresh.draw(body, far, grid=GridPlane(spacing=0.05))
+    np.testing.assert_array_equal(reused.image(), fresh.image())
+    reused.draw(body, far)      # no grid any more
+    plain = Renderer(64, 48)
+    plain.draw(body, far)
+    np.testing.assert_array_equal(reused.image(), plain.image())
+
+
 def test_composed_frame_has_labels_and_is_deterministic():
     scene = scenes.get("colouring")
     states = SceneRunner(scene).advance()
