@@ -141,7 +141,7 @@ def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = 1e-10,
     for it in range(1, max_iterations + 1):
         H = problem.hessian(x)[free_dofs][:, free_dofs]
         d = np.zeros(x.size)
-        d[free_dofs] = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs])
+        d[free_dofs] = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs], permc_spec="MMD_AT_PLUS_A")
         d = d.reshape(-1, 3)
         if not np.isfinite(d).all():
             break
