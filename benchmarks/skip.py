@@ -77,7 +77,7 @@ def main(argv=None):
     mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=cells)
     pinned = mesh.vertices[:, 0] < 1e-9
     mat = solver.Material(1e5, 0.3, 1000.0)
-    rows, notes = [], []
+    rows = []
     bar = progress(total=5, desc="skip", disable=args.no_progress)
 
     # 3. set-up first (before any other Simulation on this mesh fills the colouring cache).

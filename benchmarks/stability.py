@@ -309,7 +309,7 @@ def plot(rows, path):
                 ((passed, "RdYlGn", 0, 1, "fraction of cells passing"),
                  (err, "viridis", -8, 0, "log10 median error after budget"))):
             ax = axes[row, col]
-            im = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, origin="lower", aspect="auto")
+            ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, origin="lower", aspect="auto")
             ax.set_xticks(range(len(Es)), [f"{E:.0e}" for E in Es], fontsize=7, rotation=45)
             ax.set_yticks(range(len(nus)), [f"{nu:g}" for nu in nus], fontsize=7)
             for a in range(len(nus)):

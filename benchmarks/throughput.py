@@ -132,7 +132,7 @@ def worker(args):
         mesh = solver.box_mesh(size=(cells[0] / 10, cells[1] / 10, cells[2] / 10), cells=cells)
         fixed = mesh.vertices[:, 0] < 1e-9
         t = time.perf_counter()
-        coloring = solver.color_vertices(mesh.tets, mesh.n_vertices)          # no cache: the real cost
+        solver.color_vertices(mesh.tets, mesh.n_vertices)          # no cache: the real cost
         coloring_s = time.perf_counter() - t
         mat = solver.Material(1e5, 0.3, 1000.0)
         for precision in ("float64", "float32"):

@@ -113,8 +113,9 @@ class Simulation:
     acceleration (VBD Eq. 18-19), None for none; damping: k_d in s (VBD Eq. 10-11), 0 for none;
     ground: a `Ground` or None; tolerance: stop a step once max_i |f_i| falls below this fraction of
     the larger of its value at the initial guess and the heaviest vertex's weight max_i m_i |g|
-    (or to round-off level), checked every `check_every` iterations (each check costs about one iteration); kinematic: vertices whose positions `kinematic_motion(t, rest)`
-    scripts, rest being their (K, 3) rest positions and the result their (K, 3) positions at time t;
+    (or to round-off level), checked every `check_every` iterations (a check costs about one
+    iteration); kinematic: vertices whose positions `kinematic_motion(t, rest)` scripts, rest
+    being their (K, 3) rest positions and the result their (K, 3) positions at time t;
     precision: "float64" or "float32"; arch: "cpu" or "gpu"; record_history: keep G and max |f_i|
     after every iteration of the last step in `history`.
     """
