@@ -208,11 +208,11 @@ def _pyplot():
     return plt
 
 
-def _render_scene(scene, frames_to_save, out, prefix, size, ghost_frames=None):
+def _render_scene(scene, frames_to_save, out, prefix, size):
     """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel errors}.
 
-    The Newton ghost (and so the error label) is computed only on the saved frames: it is the
-    expensive part and the other frames do not show it.
+    Every frame is simulated with its Newton ghost, so that a trajectory ghost has followed the
+    converged solution all the way to the frames that are saved.
     """
     from .compose import FrameComposer
     from .runner import SceneRunner
@@ -220,11 +220,8 @@ def _render_scene(scene, frames_to_save, out, prefix, size, ghost_frames=None):
     runner = SceneRunner(scene)
     composer = None
     wanted = sorted(frames_to_save)
-    ghosts = [p.ghost_enabled for p in runner.panels]
     errors = {}
     for frame in range(wanted[-1] + 1):
-        for p, ghost in zip(runner.panels, ghosts):
-            p.ghost_enabled = ghost and frame in wanted
         states = runner.advance()
         if frame in wanted:
             composer = composer or FrameComposer(scene, *size)
