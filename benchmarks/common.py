@@ -34,6 +34,26 @@ def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
 
 
+def seconds_per_call(run, min_seconds=0.1, repeats=3):
+    """Median wall time of one call of run(1), from `repeats` timings of run(k) lasting
+    >= min_seconds / repeats each (k grows by 4x until they do); returns (seconds, k * repeats)."""
+    run(1)
+    k = 1
+    while True:
+        start = time.perf_counter()
+        run(k)
+        t = time.perf_counter() - start
+        if t >= min_seconds / repeats or k >= 1 << 16:
+            break
+        k *= 4
+    samples = [t / k]
+    for _ in range(repeats - 1):
+        start = time.perf_counter()
+        run(k)
+        samples.append((time.perf_counter() - start) / k)
+    return float(np.median(samples)), k * repeats
+
+
 def write_csv(path: str, rows: list, columns: list = None) -> str:
     """Write a list of dicts as CSV (columns: the union of keys in first-seen order by default)."""
     if columns is None:

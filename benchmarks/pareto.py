@@ -20,8 +20,8 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (Timer, init_taichi, parser, progress, provenance, table, time_to_reach,
-                               write_csv)
+from benchmarks.common import (Timer, init_taichi, parser, progress, provenance, seconds_per_call, table,
+                               time_to_reach, write_csv)
 
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
 COLUMNS = ["case", "E", "tets", "state", "method", "family", "param", "iterations", "seconds",
@@ -97,22 +97,8 @@ class Case:
 
 
 def seconds_per_iteration(run, min_seconds=0.1, repeats=3):
-    """Median wall time of one call of run(1), from `repeats` timings of run(k) lasting >= min_seconds."""
-    run(2)
-    k, t = 1, 0.0
-    while True:
-        start = time.perf_counter()
-        run(k)
-        t = time.perf_counter() - start
-        if t >= min_seconds / repeats or k >= 1 << 16:
-            break
-        k *= 4
-    samples = [t / k]
-    for _ in range(repeats - 1):
-        start = time.perf_counter()
-        run(k)
-        samples.append((time.perf_counter() - start) / k)
-    return float(np.median(samples))
+    """Median wall time of one call of run(1) (see `common.seconds_per_call`)."""
+    return seconds_per_call(run, min_seconds, repeats)[0]
 
 
 def modelled(rows, setup, per_iteration):

@@ -24,7 +24,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import ROOT, init_taichi, parser, progress, provenance, table, write_csv
+from benchmarks.common import (ROOT, init_taichi, parser, progress, provenance, seconds_per_call, table,
+                               write_csv)
 
 FULL_SIZES = [(12, 4, 4), (16, 6, 6), (20, 10, 10), (30, 14, 12), (40, 20, 20), (60, 30, 30), (100, 40, 42)]
 QUICK_SIZES = [(6, 2, 2), (12, 4, 4)]
@@ -34,25 +35,6 @@ COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_
            "ms_per_iter", "iterations_timed", "coloring_s", "setup_s", "probe_ns_per_tet_iter",
            "arith_floor_ns_per_tet_iter", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s",
            "newton_ns_per_tet"]
-
-
-def _timed(run, min_seconds, repeats=3):
-    """Median seconds per call of run(k) over `repeats` timings of >= min_seconds/repeats each; k."""
-    run(1)
-    k = 1
-    while True:
-        t = time.perf_counter()
-        run(k)
-        t = time.perf_counter() - t
-        if t >= min_seconds / repeats or k >= 1 << 14:
-            break
-        k *= 2
-    samples = [t / k]
-    for _ in range(repeats - 1):
-        t = time.perf_counter()
-        run(k)
-        samples.append((time.perf_counter() - t) / k)
-    return float(np.median(samples)), k * repeats
 
 
 def _probe_class():
@@ -114,7 +96,7 @@ def _flop_rate(dtype, min_seconds):
             fma()
         out[0]
 
-    sec, _ = _timed(run, min_seconds)
+    sec, _ = seconds_per_call(run, min_seconds)
     return n * steps * 4 * 3 * 2 / sec    # 4 vectors x 3 lanes x (mul + add)
 
 
@@ -140,9 +122,9 @@ def worker(args):
             sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=1, precision=precision)
             setup_s = time.perf_counter() - t - sim.coloring.seconds
             sim.begin_step()
-            sec, k = _timed(sim.run_iterations, args.min_seconds)
+            sec, k = seconds_per_call(sim.run_iterations, args.min_seconds)
             probe = MemoryProbe(sim)
-            probe_sec, _ = _timed(probe.iterate, args.min_seconds)
+            probe_sec, _ = seconds_per_call(probe.iterate, args.min_seconds)
             n_free, n_entries = sim.color_order.shape[0], sim.adj_others.shape[0]
             flops = FLOPS_PER_ENTRY * n_entries + FLOPS_PER_VERTEX * n_free
             row = dict(tets=mesh.n_tets, vertices=mesh.n_vertices, cells="x".join(map(str, cells)),
@@ -156,7 +138,7 @@ def worker(args):
             if args.extras and precision == "float64":
                 x0, y = sim.positions, sim.y.to_numpy().astype(np.float64)
                 nv = NumpyVBD(sim)
-                np_sec, _ = _timed(lambda kk: nv.sweep(x0, y, kk), args.min_seconds, repeats=1)
+                np_sec, _ = seconds_per_call(lambda kk: nv.sweep(x0, y, kk), args.min_seconds, repeats=1)
                 row["numpy_ns_per_tet_iter"] = np_sec / mesh.n_tets * 1e9
                 row["numpy_speedup"] = np_sec / sec
                 if mesh.n_tets <= args.newton_max_tets:
