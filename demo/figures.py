@@ -487,7 +487,8 @@ SECTIONS = {
 
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="python -m demo figures",
-                                     description="Regenerate every figure, table and number of lecture_notes/.")
+                                     description="Regenerate every figure, table and number of lecture_notes/.",
+                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--only", default="", help="comma-separated sections to run (see --list); "
                                                    "'excerpts' refreshes only the code excerpts")
     parser.add_argument("--list", action="store_true", help="list the sections")

@@ -370,11 +370,11 @@ def describe_not_implemented(error: BaseException) -> str:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(
-        prog="python -m demo homework",
+        prog="python -m demo homework", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Write a homework starter copy of this project: every solution region in the solver is "
                     "replaced by a TODO, plus a student README and the graded tests (grading/).")
     parser.add_argument("--out", type=Path, default=Path("out") / "homework",
-                        help="folder to write the starter into (default: out/homework)")
+                        help="folder to write the starter into")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
     parser.add_argument("--list", action="store_true", help="list the tasks and their solution regions, write nothing")
     args = parser.parse_args(argv)
