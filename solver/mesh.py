@@ -172,10 +172,10 @@ def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> 
     vertices = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     cell_ijk = np.stack(np.meshgrid(*[np.arange(c) for c in cells], indexing="ij"), axis=-1).reshape(-1, 3)
     tets = kuhn_tets(cell_ijk, cells + 1)
-    return TetMesh(vertices, _oriented(vertices, tets))
+    return TetMesh(vertices, oriented_tets(vertices, tets))
 
 
-def _oriented(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+def oriented_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Swap two vertices of every negatively oriented tet (used by generators, whose tets are valid)."""
     tets = tets.copy()
     neg = signed_volumes(vertices, tets) < 0

@@ -7,7 +7,7 @@ the first voxel centre above it, and a cumulative sum along z counts crossings b
 import numpy as np
 
 from .errors import MeshError
-from .mesh import kuhn_tets
+from .mesh import kuhn_tets, oriented_tets
 
 
 def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, pitch: float,
@@ -49,7 +49,7 @@ def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, p
 def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: int, name: str = "surface"):
     """Fill a closed surface with voxels, `resolution` along its longest side, 6 tets per voxel.
 
-    Returns (vertices (N, 3), tets (M, 4)) on a conforming lattice; orientation is fixed by `TetMesh`.
+    Returns (vertices (N, 3), tets (M, 4)) on a conforming lattice, every tet positively oriented.
     """
     if not isinstance(resolution, (int, np.integer)) or not 2 <= resolution <= 1000:
         raise MeshError(f"voxel resolution must be an integer from 2 to 1000, got {resolution!r}")
@@ -70,7 +70,4 @@ def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: 
     used, tets = np.unique(tets, return_inverse=True)
     tets = tets.reshape(-1, 4)
     points = lattice[used]
-    x = points[tets]
-    vol = np.linalg.det(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1))
-    tets[vol < 0] = tets[vol < 0][:, [0, 1, 3, 2]]
-    return points, tets
+    return points, oriented_tets(points, tets)
