@@ -2,7 +2,7 @@
 
 * `JacobiSweep`: the same per-vertex 3x3 Newton update, but all free vertices at once from the
   same old positions (no colouring), written into a temporary field and then applied. It reuses the
-  simulation's fields and its `_force_hessian`, so the only difference to VBD is the ordering.
+  simulation's arrays and `solver.vertex_solve.force_hessian`, so the only difference to VBD is the ordering.
   `omega` < 1 under-relaxes the update (x += omega H^-1 f).
 * `NumpyVBD`: the Gauss-Seidel VBD sweep colour by colour in vectorised numpy: what a student would
   write without Taichi. It reads the simulation's adjacency arrays once and then works only on numpy.
@@ -10,36 +10,39 @@
 import numpy as np
 import taichi as ti
 
+from solver.layout import X
+from solver.vertex_solve import force_hessian
 
-@ti.data_oriented
+
+@ti.kernel
+def _jacobi_step(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                 offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                 params: ti.types.ndarray(), dx: ti.types.ndarray(), omega: ti.f64, dtype: ti.template()):
+    """All free vertices from the same old positions, then x += omega dx: no colouring."""
+    for k in range(color_order.shape[0]):
+        f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+        d = ti.Vector.zero(dtype, 3)
+        if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
+            d = ti.cast(H.inverse() @ f, dtype)
+        dx[k] = d
+    for k in range(color_order.shape[0]):
+        state[X, color_order[k]] += ti.cast(omega, dtype) * dx[k]
+
+
 class JacobiSweep:
-    """Jacobi-ordered VBD on the fields of `sim`: call `iterate(k)` between sim.begin_step/end_step."""
+    """Jacobi-ordered VBD on the arrays of `sim`: call `iterate(k)` between sim.begin_step/end_step."""
 
     def __init__(self, sim, omega: float = 1.0):
         self.sim = sim
         self.omega = float(omega)
-        self.dx = ti.Vector.field(3, sim.dtype, max(1, len(sim.free_mask.nonzero()[0])))
-        self.n_slots = sim.color_order.shape[0]
-
-    @ti.kernel
-    def _compute(self, n: ti.i32):
-        for k in range(n):
-            f, H = self.sim._force_hessian(k)
-            d = ti.Vector.zero(self.sim.dtype, 3)
-            if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
-                d = H.inverse() @ f
-            self.dx[k] = d
-
-    @ti.kernel
-    def _apply(self, n: ti.i32, omega: ti.f64):
-        for k in range(n):
-            i = self.sim.color_order[k]
-            self.sim.x[i] += ti.cast(omega, self.sim.dtype) * self.dx[k]
+        self.dx = ti.Vector.ndarray(3, sim.dtype, max(1, sim.topology.n_slots))
 
     def iterate(self, k: int = 1):
+        s = self.sim
+        color_order, offsets, others, adj_f, _ = s._adjacency
         for _ in range(k):
-            self._compute(self.n_slots)
-            self._apply(self.n_slots, self.omega)
+            _jacobi_step(s.state, s._mass, color_order, offsets, others, adj_f, s._params, self.dx, self.omega,
+                         s.dtype)
 
 
 class NumpyVBD:
@@ -53,16 +56,13 @@ class NumpyVBD:
         self.h = float(sim.dt)
         self.mu, self.lam = float(sim.material.mu), float(sim.material.lam)
         self.alpha = 1.0 + self.mu / self.lam
-        order = sim.color_order.to_numpy().astype(np.int64)
-        offsets = sim.adj_offsets.to_numpy().astype(np.int64)
-        others = sim.adj_others.to_numpy().astype(np.int64)
-        q = sim.adj_q.to_numpy().astype(np.float64)
-        c = sim.adj_c.to_numpy().astype(np.float64)
-        m_sq = sim.adj_m_sq.to_numpy().astype(np.float64)
-        vol = sim.adj_vol.to_numpy().astype(np.float64)
+        top = sim.topology
+        order, offsets, others = (top.color_order.astype(np.int64), top.offsets.astype(np.int64),
+                                  top.others.astype(np.int64))
+        q, c, m_sq, vol = top.q, top.c, top.m_sq, top.volume
         mass = sim.masses
         self.colors = []
-        for start, end in sim._color_ranges:
+        for start, end in top.color_ranges:
             e0, e1 = offsets[start], offsets[end]
             verts = order[start:end]
             degree = np.diff(offsets[start:end + 1])

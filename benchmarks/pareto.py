@@ -145,7 +145,7 @@ def run_numpy_curve(case, sim, budget, max_iterations):
 
     case.load(sim)
     sim.begin_step()
-    x0, y = sim.positions, sim.y.to_numpy().astype(np.float64)
+    x0, y = sim.positions, sim.y
     sim.end_step()
     timer = Timer()
     with timer:

@@ -110,8 +110,8 @@ class Runner:
         """One VBD iteration colour by colour; the largest relative rise of G after a colour sweep."""
         sim, rise = self.sim, 0.0
         G = sim.energy()
-        for start, end in sim._color_ranges:
-            sim._solve_color(start, end)
+        for c in range(sim.n_colors):
+            sim.solve_color(c)
             G_new = sim.energy()
             if not math.isfinite(G_new):
                 return float("inf")

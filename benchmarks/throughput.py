@@ -5,7 +5,7 @@ threads (one worker process per thread count, since Taichi fixes the thread coun
 ns per tet per iteration of the VBD sweep, the colour count, the cost of colouring and of the rest of
 the set-up (adjacency, uploads), and two machine limits measured with the same access pattern:
   * memory probe: a kernel that reads exactly the data one sweep reads (adjacency stream, the
-    neighbours' positions) and does no arithmetic; launched per colour like the sweep;
+    neighbours' positions) and does no arithmetic; all colours in one launch like the sweep;
   * arithmetic floor: the sweep's floating-point operations per tet (counted by hand, ~430)
     divided by the measured rate of a compute-bound Taichi kernel on this machine.
 In the 2-thread worker also: the vectorised numpy VBD sweep (benchmarks/baselines.py) and one global
@@ -40,30 +40,36 @@ COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_
 def _probe_class():
     import taichi as ti
 
-    @ti.data_oriented
+    from solver.layout import X, Y
+
+    @ti.kernel
+    def read_all_colors(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                        offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                        color_starts: ti.types.ndarray(), out: ti.types.ndarray(), n_colors: ti.template()):
+        for c in ti.static(range(n_colors)):
+            for k in range(color_starts[c], color_starts[c + 1]):
+                i = color_order[k]
+                acc = state[X, i] + state[Y, i] * mass[i]
+                first, last = offsets[k], offsets[k + 1]
+                for e in range(first, last):
+                    j = others[e]
+                    a = adj_f[e]
+                    acc += state[X, j[0]] + state[X, j[1]] + state[X, j[2]] + ti.Vector([a[0], a[1], a[2]])
+                    acc[0] += a[3] + a[4] + a[5]
+                out[k] = acc.sum()
+
     class MemoryProbe:
-        """Reads what one VBD sweep reads, colour by colour, and sums it: no arithmetic to speak of."""
+        """Reads what one VBD sweep reads, all colours in one launch like the sweep, and sums it:
+        no arithmetic to speak of."""
 
         def __init__(self, sim):
             self.sim = sim
-            self.out = ti.field(sim.dtype, sim.color_order.shape[0])
-
-        @ti.kernel
-        def _read_color(self, start: ti.i32, end: ti.i32):
-            s = self.sim
-            for k in range(start, end):
-                i = s.color_order[k]
-                acc = s.x[i] + s.y[i] * s.mass[i]
-                for e in range(s.adj_offsets[k], s.adj_offsets[k + 1]):
-                    j = s.adj_others[e]
-                    acc += s.x[j[0]] + s.x[j[1]] + s.x[j[2]] + s.adj_q[e]
-                    acc[0] += s.adj_c[e] + s.adj_m_sq[e] + s.adj_vol[e]
-                self.out[k] = acc.sum()
+            self.out = ti.ndarray(sim.dtype, sim.topology.n_slots)
 
         def iterate(self, n):
+            s = self.sim
             for _ in range(n):
-                for start, end in self.sim._color_ranges:
-                    self._read_color(start, end)
+                read_all_colors(s.state, s._mass, *s._adjacency, self.out, s.n_colors)
 
     return MemoryProbe
 
@@ -125,7 +131,7 @@ def worker(args):
             sec, k = seconds_per_call(sim.run_iterations, args.min_seconds)
             probe = MemoryProbe(sim)
             probe_sec, _ = seconds_per_call(probe.iterate, args.min_seconds)
-            n_free, n_entries = sim.color_order.shape[0], sim.adj_others.shape[0]
+            n_free, n_entries = sim.topology.n_slots, sim.topology.n_entries
             flops = FLOPS_PER_ENTRY * n_entries + FLOPS_PER_VERTEX * n_free
             row = dict(tets=mesh.n_tets, vertices=mesh.n_vertices, cells="x".join(map(str, cells)),
                        precision=precision, threads=args.threads, n_colors=sim.n_colors,
@@ -136,7 +142,7 @@ def worker(args):
                        flop_rate=rates[precision], flops_per_tet=flops / mesh.n_tets,
                        bytes_per_tet=_bytes_per_tet(sim, precision))
             if args.extras and precision == "float64":
-                x0, y = sim.positions, sim.y.to_numpy().astype(np.float64)
+                x0, y = sim.positions, sim.y
                 nv = NumpyVBD(sim)
                 np_sec, _ = seconds_per_call(lambda kk: nv.sweep(x0, y, kk), args.min_seconds, repeats=1)
                 row["numpy_ns_per_tet_iter"] = np_sec / mesh.n_tets * 1e9
@@ -161,7 +167,7 @@ def _bytes_per_tet(sim, precision):
     """Bytes one sweep streams per tet: the adjacency entries (3 int32 + 6 floats) and per vertex
     x, y, mass, slot index and offsets (neighbour positions are gathered and mostly cached)."""
     f = 8 if precision == "float64" else 4
-    entries, slots = sim.adj_others.shape[0], sim.color_order.shape[0]
+    entries, slots = sim.topology.n_entries, sim.topology.n_slots
     return (entries * (12 + 6 * f) + slots * (2 * 3 * f + 3 * f + f + 4 + 4)) / sim.mesh.n_tets
 
 

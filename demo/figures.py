@@ -424,13 +424,12 @@ def section_guesses(out, full, size):
     E, pre_steps = 1e5, 10
     sim = _bar_sim((40, 4, 4), E, iterations=200, initial_guess=solver.InitialGuess.ADAPTIVE)
     sim.step(pre_steps)
-    state = [field.to_numpy() for field in (sim.x, sim.v, sim.v_prev)]
+    state = sim.save_state()
     x_star = sim.newton_reference()
     checkpoints = CHECKPOINTS[:12]
     curves = {}
     for guess in solver.InitialGuess:
-        for field, value in zip((sim.x, sim.v, sim.v_prev), state):
-            field.from_numpy(value)
+        sim.restore_state(state)
         sim.initial_guess = guess
         curves[guess] = _convergence(sim, checkpoints, x_star)
     fig, ax = plt.subplots()

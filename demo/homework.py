@@ -90,34 +90,35 @@ TASKS = (
     Task(
         id="vbd_sweep", title="The per-colour VBD sweep: assemble and solve each vertex's 3x3 system",
         points=30, chapter="lecture_notes/03-coordinate-descent.md",
-        functions=("solver/simulation.py:Simulation._force_hessian", "solver/simulation.py:Simulation._solve_vertex"),
-        what={"_force_hessian": "assemble f_i and H_i of vertex i from its inertia term and the tets "
-                                "around it",
-              "_solve_vertex": "take vertex i's 3x3 Newton step x_i += H_i^-1 f_i, skipping a singular H_i"},
+        functions=("solver/vertex_solve.py:force_hessian", "solver/vertex_solve.py:solve_vertex"),
+        what={"force_hessian": "assemble f_i and H_i of vertex i from its inertia term and the tets "
+                               "around it",
+              "solve_vertex": "take vertex i's 3x3 Newton step x_i += H_i^-1 f_i, skipping a singular H_i"},
         depends=("force_hessian", "coloring"),
-        details="In `Simulation._force_hessian`, add the inertia term `m_i/h^2 (y_i - x_i)` (and `m_i/h^2 I`) "
-                "and loop over the tets around the vertex with `_tet_kinematics` and `vertex_force_hessian`. "
-                "In `Simulation._solve_vertex`, solve the 3x3 system and update `x_i` in place "
+        details="In `force_hessian` (solver/vertex_solve.py), add the inertia term `m_i/h^2 (y_i - x_i)` (and "
+                "`m_i/h^2 I`) and loop over the tets around the vertex with `tet_kinematics` and "
+                "`vertex_force_hessian`. In `solve_vertex`, solve the 3x3 system and update `x_i` in place "
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
-        notes={"_force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
-                                  "the damping term below uses it).",
-                                  "The adjacency entries of colour slot k are e in "
-                                  "range(self.adj_offsets[k], self.adj_offsets[k + 1])."],
-               "_solve_vertex": ["i = self.color_order[k] is the vertex; self._force_hessian(k) gives f, H."]},
+        notes={"force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
+                                 "the damping term below uses it).",
+                                 "x_i is state[X, i] and y_i is state[Y, i]; the adjacency entries of colour "
+                                 "slot k are e in range(offsets[k], offsets[k + 1])."],
+               "solve_vertex": ["i = color_order[k] is the vertex; force_hessian(state, mass, color_order, "
+                                "offsets, others, adj_f, params, k, dtype) gives f, H."]},
     ),
     Task(
         id="chebyshev", title="Chebyshev acceleration", points=20,
         chapter="lecture_notes/06-what-helps.md",
-        functions=("solver/simulation.py:Simulation._chebyshev_omega", "solver/simulation.py:Simulation._chebyshev"),
-        what={"_chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
-              "_chebyshev": "the accelerated update x = omega (x - x^(k-2)) + x^(k-2) and the history shift "
-                            "(VBD Eq. 18)"},
+        functions=("solver/chebyshev.py:chebyshev_omega", "solver/chebyshev.py:chebyshev_update"),
+        what={"chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
+              "chebyshev_update": "the accelerated update x = omega (x - x^(k-2)) + x^(k-2) and the history "
+                                  "shift (VBD Eq. 18)"},
         depends=("force_hessian", "coloring", "vbd_sweep"),
         details="Return the weights `omega_1 = 1`, `omega_2 = 2/(2 - rho^2)`, "
                 "`omega_k = 4/(4 - rho^2 omega_(k-1))` and apply the over-relaxation step to every free vertex, "
-                "keeping `x_prev` = x^(k-1) and `x_prev2` = x^(k-2) up to date (chapter 6, \"Chebyshev "
-                "acceleration\").",
-        notes={"_chebyshev": ["Update x_prev2 <- x_prev and x_prev <- the accelerated x as well."]},
+                "keeping `state[X_PREV, i]` = x^(k-1) and `state[X_PREV2, i]` = x^(k-2) up to date (chapter 6, "
+                "\"Chebyshev acceleration\").",
+        notes={"chebyshev_update": ["Update x^(k-2) <- x^(k-1) and x^(k-1) <- the accelerated x as well."]},
     ),
 )
 

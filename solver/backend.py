@@ -38,15 +38,26 @@ def _initialised_arch():
     return runtime.prog.config().arch
 
 
+_warned_mismatch = set()
+
+
 def ensure_taichi(arch: str = "cpu") -> None:
-    """Initialise Taichi once; later calls keep whatever backend is already running.
+    """Initialise Taichi once; later calls keep whatever backend is already running, with one
+    warning when they ask for another one.
 
     ``arch`` is ``"cpu"`` or ``"gpu"`` (CUDA, which supports float64). ``"gpu"`` falls back to the
     CPU with one warning when no CUDA GPU is available.
     """
     if arch not in ("cpu", "gpu"):
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
-    if _initialised_arch() is not None:
+    running = _initialised_arch()
+    if running is not None:
+        on_cpu = running in (ti.x64, ti.arm64)
+        if (arch == "gpu") == on_cpu and arch not in _warned_mismatch:
+            _warned_mismatch.add(arch)
+            name = "the CPU" if on_cpu else "the GPU"
+            warnings.warn(f"arch={arch!r} was asked for, but Taichi already runs on {name} in this process; "
+                          f"keeping {name} (start a new process to change the backend)", stacklevel=3)
         return
     if arch == "cpu":
         ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)

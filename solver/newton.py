@@ -18,6 +18,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .contact import ground_energy_np, ground_gradient_np, ground_hessian_diag_np
 from .material import d2psi_dF2_np, dpsi_dF_np, psi_np
 
 
@@ -51,17 +52,12 @@ class StepProblem:
         """(M, 3, 3) F of every tet at positions x (N, 3)."""
         return np.einsum("tka,tkb->tab", x[self.tets], self.grad_rows)
 
-    def _depth(self, x):
-        if self.ground is None:
-            return np.zeros(len(x))
-        return np.where(self.free, np.maximum(self.ground.height - x[:, 2], 0.0), 0.0)
-
     def energy(self, x: np.ndarray) -> float:
         """G(x) in J."""
         d = (x - self.y)[self.free]
         inertia = 0.5 / self.h ** 2 * np.sum(self.masses[self.free] * np.sum(d * d, axis=1))
         elastic = np.sum(self.volumes * psi_np(self.deformation_gradients(x), self.mu, self.lam))
-        contact = 0.0 if self.ground is None else 0.5 * self.ground.stiffness * np.sum(self._depth(x) ** 2)
+        contact = 0.0 if self.ground is None else ground_energy_np(self.ground, x, self.free)
         return float(inertia + elastic + contact)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
@@ -72,7 +68,7 @@ class StepProblem:
         np.add.at(g, self.tets.ravel(), per_vertex.reshape(-1, 3))
         g += self.masses[:, None] / self.h ** 2 * (x - self.y)
         if self.ground is not None:
-            g[:, 2] -= self.ground.stiffness * self._depth(x)
+            g += ground_gradient_np(self.ground, x, self.free)
         g[~self.free] = 0.0
         return g
 
@@ -95,7 +91,7 @@ class StepProblem:
         n = 3 * len(x)
         diag = np.repeat(self.masses / self.h ** 2, 3)
         if self.ground is not None:
-            diag[2::3] += self.ground.stiffness * (self._depth(x) > 0)
+            diag += ground_hessian_diag_np(self.ground, x, self.free)
         H = sp.coo_matrix((blocks.ravel(), (rows, cols)), shape=(n, n)).tocsr()
         return H + sp.diags(diag)
 

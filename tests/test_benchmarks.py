@@ -110,7 +110,7 @@ def test_numpy_vbd_matches_taichi_sweep(solver_module):
                             iterations=5)
     sim.step()
     sim.begin_step()
-    x0, y = sim.positions, sim.y.to_numpy()
+    x0, y = sim.positions, sim.y
     sim.run_iterations(5)
     x_taichi = sim.positions
     sim.end_step()

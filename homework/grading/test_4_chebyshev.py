@@ -1,9 +1,12 @@
 """Task chebyshev: Chebyshev acceleration of the VBD iterations (lecture notes, chapter 6)."""
 import numpy as np
 import pytest
+import taichi as ti
 
 import solver
 from gradelib import bar, require, simulation
+from solver.chebyshev import chebyshev_omega, chebyshev_update
+from solver.layout import STATE_ROWS, X, X_PREV, X_PREV2
 
 pytestmark = pytest.mark.task("chebyshev")
 
@@ -11,10 +14,9 @@ pytestmark = pytest.mark.task("chebyshev")
 @pytest.mark.parametrize("rho", [0.5, 0.9, 0.97])
 def test_weights(rho):
     require("chebyshev")
-    sim = simulation(bar(cells=(2, 1, 1)), chebyshev_rho=rho)
-    omega = [sim._chebyshev_omega(1, 1.0)]
+    omega = [chebyshev_omega(1, rho, 1.0)]
     for k in range(2, 30):
-        omega.append(sim._chebyshev_omega(k, omega[-1]))
+        omega.append(chebyshev_omega(k, rho, omega[-1]))
     assert omega[0] == 1.0
     assert omega[1] == pytest.approx(2.0 / (2.0 - rho * rho), rel=1e-12)
     for k in range(2, len(omega)):
@@ -22,22 +24,33 @@ def test_weights(rho):
     assert 1.0 < omega[-1] < 2.0
 
 
+@ti.kernel
+def _update_free(state: ti.types.ndarray(), color_order: ti.types.ndarray(), omega: ti.f64):
+    for k in range(color_order.shape[0]):
+        chebyshev_update(state, color_order[k], omega)
+
+
 def test_update_and_history():
     require("chebyshev")
     sim = simulation(bar(cells=(3, 1, 1)), chebyshev_rho=0.9)
+    n = sim.mesh.n_vertices
     rng = np.random.default_rng(0)
-    x, x1, x2 = (rng.normal(size=(sim.mesh.n_vertices, 3)) for _ in range(3))
-    sim.x.from_numpy(x)
-    sim.x_prev.from_numpy(x1)
-    sim.x_prev2.from_numpy(x2)
+    x, x1, x2 = (rng.normal(size=(n, 3)) for _ in range(3))
+    rows = np.zeros((STATE_ROWS, n, 3))
+    rows[X], rows[X_PREV], rows[X_PREV2] = x, x1, x2
+    state = ti.Vector.ndarray(3, ti.f64, (STATE_ROWS, n))
+    state.from_numpy(rows)
+    order = ti.ndarray(ti.i32, sim.topology.n_slots)
+    order.from_numpy(sim.topology.color_order)
     omega = 1.37
-    sim._chebyshev(omega)
+    _update_free(state, order, omega)
+    out = state.to_numpy()
     free = sim.free_mask
     expected = omega * (x - x2) + x2
-    assert np.allclose(sim.x.to_numpy()[free], expected[free], rtol=1e-12, atol=1e-12)
-    assert np.array_equal(sim.x.to_numpy()[~free], x[~free]), "pinned vertices must not move"
-    assert np.allclose(sim.x_prev.to_numpy()[free], expected[free], rtol=1e-12, atol=1e-12)
-    assert np.array_equal(sim.x_prev2.to_numpy()[free], x1[free])
+    assert np.allclose(out[X][free], expected[free], rtol=1e-12, atol=1e-12)
+    assert np.array_equal(out[X][~free], x[~free]), "pinned vertices must not move"
+    assert np.allclose(out[X_PREV][free], expected[free], rtol=1e-12, atol=1e-12)
+    assert np.array_equal(out[X_PREV2][free], x1[free])
 
 
 def test_acceleration_reduces_the_error():

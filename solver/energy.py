@@ -1,0 +1,51 @@
+"""The incremental potential G of one implicit Euler step, and the inverted-element count, in Taichi.
+
+    G(x) = sum_free m_i/(2h^2) |x_i - y_i|^2 + sum_tets vol Psi(F) + sum_free k_c/2 max(0, z0 - z_i)^2
+
+(lecture notes, chapter 1). The numpy twin is `newton.StepProblem.energy`.
+state (STATE_ROWS, N) 3-vectors; mass (N,); free (N,) int32; tets (M,) 4-vectors of int32;
+Dm_inv (M,) 3x3 inverse rest edge matrices; volume (M,) rest volumes; params (PARAM_COUNT,).
+"""
+import taichi as ti
+
+from .contact import ground_energy
+from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, LAM, MU, TIME_STEP, X, Y
+from .material import psi
+
+
+@ti.func
+def deformation_gradient(state: ti.template(), tets: ti.template(), Dm_inv: ti.template(), t):
+    """F = Ds Dm^-1 of tet t at the current positions."""
+    a, b, c, d = tets[t][0], tets[t][1], tets[t][2], tets[t][3]
+    x0 = state[X, a]
+    Ds = ti.Matrix.cols([state[X, b] - x0, state[X, c] - x0, state[X, d] - x0])
+    return Ds @ Dm_inv[t]
+
+
+@ti.kernel
+def incremental_potential(state: ti.types.ndarray(), mass: ti.types.ndarray(), free: ti.types.ndarray(),
+                          tets: ti.types.ndarray(), Dm_inv: ti.types.ndarray(), volume: ti.types.ndarray(),
+                          params: ti.types.ndarray()) -> ti.f64:
+    """G(x) in J at the current positions x for the current step's y."""
+    G = ti.cast(0.0, ti.f64)
+    h = params[TIME_STEP]
+    for i in range(state.shape[1]):
+        if free[i]:
+            d = state[X, i] - state[Y, i]
+            G += ti.cast(0.5 * mass[i] / (h * h) * d.dot(d), ti.f64)
+            if params[GROUND] > 0:
+                G += ti.cast(ground_energy(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS]), ti.f64)
+    for t in range(tets.shape[0]):
+        F = deformation_gradient(state, tets, Dm_inv, t)
+        G += ti.cast(volume[t] * psi(F, params[MU], params[LAM]), ti.f64)
+    return G
+
+
+@ti.kernel
+def count_inverted(state: ti.types.ndarray(), tets: ti.types.ndarray(), Dm_inv: ti.types.ndarray()) -> ti.i32:
+    """Number of tets with det F <= 0 (inverted or flat) at the current positions."""
+    n = 0
+    for t in range(tets.shape[0]):
+        if deformation_gradient(state, tets, Dm_inv, t).determinant() <= 0:
+            n += 1
+    return n

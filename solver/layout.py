@@ -1,0 +1,37 @@
+"""How a simulation's state and settings are laid out in the arrays its kernels share.
+
+Every kernel of the solver is a module-level `ti.kernel` taking `ti.types.ndarray()` arguments, so it
+is compiled once per process and shared by every `Simulation`; a kernel launch passes a handful of
+arrays, so the per-vertex 3-vectors live as rows of one (STATE_ROWS, N) array of 3-vectors and the
+scalar settings as one (PARAM_COUNT,) array.
+"""
+
+# Rows of `state`, shape (STATE_ROWS, N) of 3-vectors.
+X = 0          # current iterate x
+X_N = 1        # positions at the start of the step, x_n
+Y = 2          # inertial target y = x_n + h v_n + h^2 g
+V = 3          # velocities v_n
+V_PREV = 4     # velocities v_{n-1}, for the adaptive initial guess
+X_PREV = 5     # x^(k-1), for Chebyshev acceleration
+X_PREV2 = 6    # x^(k-2), for Chebyshev acceleration
+STATE_ROWS = 7
+
+# Entries of `params`, shape (PARAM_COUNT,), same float type as the state.
+TIME_STEP = 0         # time step h in s
+MU = 1                # Neo-Hookean mu in Pa
+LAM = 2               # Neo-Hookean lambda in Pa
+DAMPING = 3           # k_d in s (VBD Eq. 10-11), 0 for none
+GROUND = 4            # 1 with a ground plane, 0 without
+GROUND_HEIGHT = 5     # z of the plane in m
+GROUND_STIFFNESS = 6  # k_c in N/m
+FRICTION = 7          # Coulomb mu_f
+FRICTION_SPEED = 8    # sliding speed below which friction is smoothed, m/s
+GRAVITY_X = 9         # gravity g in m/s^2, three entries
+PARAM_COUNT = 12
+
+# Columns of the per-entry adjacency array `adj_f`, shape (E, 6): q (3), c, |m_i|^2, rest volume.
+Q = 0
+C = 3
+M_SQ = 4
+VOLUME = 5
+ADJ_FLOATS = 6

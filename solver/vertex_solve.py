@@ -1,0 +1,142 @@
+"""The VBD sweep: each vertex's force f_i and Hessian H_i, its 3x3 Newton step, one colour at a time.
+
+VBD [Chen et al. 2024] Alg. 1: for each colour, in parallel over its vertices i,
+
+    f_i = m_i/h^2 (y_i - x_i) - sum_{tets t of i} vol_t dPsi/dx_i      (Eq. 5)
+    H_i = m_i/h^2 I         + sum_{tets t of i} vol_t d2Psi/dx_i2    (Eq. 6)
+    x_i <- x_i + H_i^-1 f_i                                           (Alg. 1, lines 7-10)
+
+plus optional damping (Eq. 10-11) and ground contact (`contact.py`). The kernels are module-level and
+take arrays (`layout.py`), so they compile once per process and every `Simulation` shares them; one
+launch of `vbd_iteration` runs all colours of one iteration.
+
+Arguments shared by the functions below (S free vertices in colour order, E = their (vertex, tet) pairs):
+state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of each slot;
+offsets (S + 1,) int32 first adjacency entry of each slot; others (E, 3) int32; adj_f (E, ADJ_FLOATS);
+params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
+"""
+import taichi as ti
+
+from .chebyshev import chebyshev_update
+from .contact import ground_force_hessian
+from .layout import (ADJ_FLOATS, C, DAMPING, FRICTION, FRICTION_SPEED, GROUND, GROUND_HEIGHT,
+                     GROUND_STIFFNESS, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
+                     X_N, Y)
+from .material import vertex_force_hessian
+
+assert ADJ_FLOATS == VOLUME + 1
+
+
+@ti.func
+def tet_kinematics(state: ti.template(), i, others: ti.template(), adj_f: ti.template(), e):
+    """F m_i, J = det F and w = dJ/dx_i of the tet behind adjacency entry e of vertex i.
+
+    With d_j = x_j - x_i for the other three vertices: F m_i = sum_j q_j d_j, and
+    det(Ds) = d_1 . n with n = (d_2 - d_1) x (d_3 - d_1) the area normal of the face opposite i,
+    so J = c d_1 . n and w = dJ/dx_i = -c n. No 3x3 matrix product is needed.
+    """
+    x_i = state[X, i]
+    j = others[e]
+    d1 = state[X, j[0]] - x_i
+    d2 = state[X, j[1]] - x_i
+    d3 = state[X, j[2]] - x_i
+    n = (d2 - d1).cross(d3 - d1)
+    c = adj_f[e][C]
+    return adj_f[e][Q] * d1 + adj_f[e][Q + 1] * d2 + adj_f[e][Q + 2] * d3, c * d1.dot(n), -c * n
+
+
+@ti.func
+def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.template(), offsets: ti.template(),
+                  others: ti.template(), adj_f: ti.template(), params: ti.template(), k, dtype: ti.template()):
+    """f_i = -dG/dx_i and H_i = d2G/dx_i2 of the vertex i in colour slot k, at the current x.
+
+    VBD [Chen et al. 2024] Eq. 5-6: inertia, elasticity of the tets around i, then damping
+    (Eq. 10-11) and ground contact when the settings ask for them.
+    """
+    i = color_order[k]
+    h = params[TIME_STEP]
+    mu, lam = params[MU], params[LAM]
+    # BEGIN SOLUTION task=vbd_sweep
+    m_h2 = mass[i] / (h * h)
+    f = m_h2 * (state[Y, i] - state[X, i])
+    H = ti.Matrix.diag(3, m_h2)
+    f_el = ti.Vector.zero(dtype, 3)
+    H_el = ti.Matrix.zero(dtype, 3, 3)
+    for e in range(offsets[k], offsets[k + 1]):
+        Fm, J, w = tet_kinematics(state, i, others, adj_f, e)
+        df, dH = vertex_force_hessian(Fm, J, w, adj_f[e][M_SQ], adj_f[e][VOLUME], mu, lam)
+        f_el += df
+        H_el += dH
+    f += f_el
+    H += H_el
+    # END SOLUTION
+    k_d = params[DAMPING]
+    if k_d > 0:
+        f -= (k_d / h) * (H_el @ (state[X, i] - state[X_N, i]))
+        H += (k_d / h) * H_el
+    if params[GROUND] > 0:
+        f_c, H_c = ground_force_hessian(state[X, i], state[X, i] - state[X_N, i], h, params[GROUND_HEIGHT],
+                                        params[GROUND_STIFFNESS], params[FRICTION], params[FRICTION_SPEED],
+                                        dtype)
+        f += f_c
+        H += H_c
+    return f, H
+
+
+@ti.func
+def solve_vertex(state: ti.template(), mass: ti.template(), color_order: ti.template(), offsets: ti.template(),
+                 others: ti.template(), adj_f: ti.template(), params: ti.template(), k, dtype: ti.template()):
+    """x_i <- x_i + H_i^-1 f_i for the vertex i in colour slot k, skipping a (near) singular H_i
+    (VBD Alg. 1, lines 7-10)."""
+    # BEGIN SOLUTION task=vbd_sweep
+    i = color_order[k]
+    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    det = H.determinant()
+    if ti.abs(det) > 1e-15 * H.norm_sqr() ** 1.5:
+        state[X, i] += ti.cast(H.inverse() @ f, dtype)
+    # END SOLUTION
+
+
+@ti.kernel
+def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                  offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                  color_starts: ti.types.ndarray(), params: ti.types.ndarray(), omega: ti.f64,
+                  accelerate: ti.i32, n_colors: ti.template(), dtype: ti.template()):
+    """One VBD iteration: each colour in turn, all vertices of a colour in parallel, then the
+    Chebyshev step (VBD Eq. 18) when `accelerate` is 1.
+
+    color_starts (n_colors + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
+    """
+    for c in ti.static(range(n_colors)):
+        for k in range(color_starts[c], color_starts[c + 1]):
+            solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    for k in range(color_starts[n_colors] * accelerate):
+        chebyshev_update(state, color_order[k], ti.cast(omega, dtype))
+
+
+@ti.kernel
+def vbd_color(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+              offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+              params: ti.types.ndarray(), start: ti.i32, end: ti.i32, dtype: ti.template()):
+    """Solve the vertices in slots start <= k < end (one colour), in parallel: no two share a tet."""
+    for k in range(start, end):
+        solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+
+
+@ti.kernel
+def local_systems(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                  offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                  params: ti.types.ndarray(), f_out: ti.types.ndarray(), H_out: ti.types.ndarray(),
+                  dtype: ti.template()) -> ti.f64:
+    """Fill f_out (N,) 3-vectors and H_out (N,) 3x3 with every free vertex's f_i and H_i (zero at the
+    others) at the current x; return max_i |f_i| in N."""
+    for i in range(f_out.shape[0]):
+        f_out[i] = ti.Vector.zero(dtype, 3)
+        H_out[i] = ti.Matrix.zero(dtype, 3, 3)
+    result = ti.cast(0.0, ti.f64)
+    for k in range(color_order.shape[0]):
+        f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+        f_out[color_order[k]] = f
+        H_out[color_order[k]] = H
+        ti.atomic_max(result, ti.cast(f.norm(), ti.f64))
+    return result

@@ -1,0 +1,181 @@
+"""The shape of the solver: shared kernels and cached adjacency, live and read-only settings, the
+divergence guard, backend warnings, and the translation correction that stops a dropped body drifting."""
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+
+import solver
+
+H = 1 / 60
+
+
+def cantilever(E=1e5, cells=(10, 2, 2), **kwargs):
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=cells)
+    kwargs.setdefault("iterations", 20)
+    kwargs.setdefault("dt", H)
+    material = kwargs.pop("material", solver.Material(E, 0.3, 1000.0))
+    return solver.Simulation(mesh, material, fixed=mesh.vertices[:, 0] < 1e-9, **kwargs)
+
+
+def test_a_second_simulation_of_the_same_mesh_reuses_topology_and_kernels():
+    first = cantilever(cells=(12, 3, 3))
+    first.step()
+    t = time.perf_counter()
+    second = cantilever(cells=(12, 3, 3))
+    second.step()
+    assert second.topology is first.topology
+    assert second._adjacency is first._adjacency            # device arrays shared too
+    assert time.perf_counter() - t < 2.0                    # no compile (a compile takes seconds here)
+    np.testing.assert_array_equal(second.positions, first.positions)
+
+
+def test_topology_is_read_only_and_consistent():
+    sim = cantilever()
+    top = sim.topology
+    with pytest.raises(ValueError):
+        top.q[0, 0] = 1.0
+    assert top.n_slots == int(sim.free_mask.sum())
+    assert sorted(top.color_order.tolist()) == np.flatnonzero(sim.free_mask).tolist()
+    for c, (start, end) in enumerate(top.color_ranges):
+        assert (sim.colors[top.color_order[start:end]] == c).all()
+    # every (free vertex, tet) pair appears once
+    degree = np.bincount(sim.mesh.tets.ravel(), minlength=sim.mesh.n_vertices)
+    assert top.n_entries == int(degree[sim.free_mask].sum())
+
+
+@pytest.mark.parametrize("name,value", [("mesh", None), ("fixed_mask", None), ("precision", "float32"),
+                                        ("topology", None), ("kinematic_mask", None)])
+def test_settings_fixed_at_construction_refuse_assignment(name, value):
+    sim = cantilever()
+    with pytest.raises(solver.ConfigError, match="fixed at construction"):
+        setattr(sim, name, value)
+
+
+def test_masks_cannot_be_changed_in_place():
+    sim = cantilever()
+    with pytest.raises(ValueError):
+        sim.fixed_mask[5] = True
+
+
+def _run(sim, steps=3):
+    sim.step(steps)
+    return sim.positions
+
+
+@pytest.mark.parametrize("name,value", [
+    ("damping", 0.05), ("chebyshev_rho", 0.8), ("dt", 1 / 120), ("iterations", 7),
+    ("ground", solver.Ground(height=0.02, stiffness=2e4, friction=0.3)),
+    ("material", solver.Material(3e5, 0.35, 800.0)), ("initial_guess", solver.InitialGuess.INERTIA),
+])
+def test_live_settings_act_like_constructor_arguments(name, value):
+    changed = cantilever()
+    _run(changed, 1)
+    setattr(changed, name, value)
+    after = _run(changed, 3)
+    reference = cantilever(**{name: value})
+    baseline = cantilever()
+    _run(baseline, 1)
+    reference.restore_state(baseline.save_state())
+    np.testing.assert_allclose(after, _run(reference, 3), rtol=0, atol=1e-12)
+    assert np.abs(after - _run(cantilever(), 4)).max() > 1e-6, "the setting had no effect"
+
+
+@pytest.mark.parametrize("kwargs", [dict(gravity="down"), dict(chebyshev_rho="a"), dict(damping="a"),
+                                    dict(dt=float("nan")), dict(chebyshev_rho=1.0), dict(iterations=0),
+                                    dict(translation_correction="yes")])
+def test_nonsense_parameters_raise_config_error(kwargs):
+    with pytest.raises(solver.ConfigError):
+        cantilever(**kwargs)
+
+
+def test_newton_reference_rejects_a_negative_tolerance():
+    with pytest.raises(solver.ConfigError):
+        cantilever().newton_reference(tolerance=-1)
+
+
+def test_kinematic_nan_says_what_is_wrong():
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(4, 1, 1))
+    end = mesh.vertices[:, 0] > 1 - 1e-9
+    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3), kinematic=end,
+                            kinematic_motion=lambda t, rest: rest * np.nan)
+    with pytest.raises(solver.ConfigError, match="NaN"):
+        sim.step()
+
+
+def test_a_diverging_step_raises_and_keeps_the_start_of_the_step():
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4))
+    sim = solver.Simulation(mesh, solver.Material(1e6, 0.3, 1000.0), fixed=mesh.vertices[:, 0] < 1e-9,
+                            iterations=100, chebyshev_rho=0.99)
+    with pytest.raises(solver.VBDError, match="diverged.*chebyshev_rho"):
+        for _ in range(10):
+            before = sim.positions
+            sim.step()
+    assert np.isfinite(sim.positions).all()
+    np.testing.assert_array_equal(sim.positions, before)
+    assert not sim._in_step
+
+
+def test_float32_agrees_with_float64():
+    x = {p: _run(cantilever(precision=p, ground=solver.Ground(-0.02, friction=0.3), damping=0.01), 5)
+         for p in ("float32", "float64")}
+    assert np.abs(x["float32"] - x["float64"]).max() < 1e-4
+
+
+def test_inverted_count():
+    sim = cantilever(cells=(2, 1, 1))
+    assert sim.inverted_count() == 0
+    x = sim.mesh.vertices.copy()
+    x[:, 2] *= -1.0                                # mirror: every tet inverted
+    sim.set_positions(x)
+    assert sim.inverted_count() == sim.mesh.n_tets
+
+
+def _drop(friction, correction):
+    sphere = solver.load_mesh("assets/sphere.obj", resolution=6)
+    mesh = solver.TetMesh(sphere.vertices + [0.0, 0.0, 0.15], sphere.tets)
+    sim = solver.Simulation(mesh, solver.Material(1e5, 0.3, 1000.0), iterations=10,
+                            ground=solver.Ground(0.0, 1e5, friction), translation_correction=correction)
+    sim.step(45)
+    c = sim.positions.mean(axis=0) - mesh.vertices.mean(axis=0)
+    assert sim.positions[:, 2].min() > -0.02, "the ball went through the ground"
+    return float(np.hypot(c[0], c[1]))
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.5])
+def test_a_symmetric_body_dropped_straight_stays_on_its_axis(friction):
+    assert _drop(friction, True) < 0.01
+
+
+def test_without_the_translation_correction_the_dropped_body_drifts():
+    assert _drop(0.0, False) > 0.02     # the failure the correction removes (so the test above can fail)
+
+
+def test_translation_correction_makes_the_residuals_sum_to_zero_for_a_free_body():
+    sphere = solver.load_mesh("assets/sphere.obj", resolution=6)
+    sim = solver.Simulation(sphere, solver.Material(1e5, 0.3), iterations=3)
+    sim.set_velocities(np.random.default_rng(0).normal(size=(sphere.n_vertices, 3)))
+    sim.begin_step()
+    sim.run_iterations(3)
+    assert np.abs(sim.residual().sum(axis=0)).max() > 1e-3
+    sim.end_step()
+    total = np.abs(sim.residual().sum(axis=0)).max()     # y and x_n are still those of the step
+    weight = sim.masses.sum() * 9.81
+    assert total < 1e-9 * weight
+
+
+def test_asking_for_another_backend_warns_once():
+    code = textwrap.dedent("""
+        import warnings, solver
+        solver.ensure_taichi("cpu")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solver.ensure_taichi("gpu")
+            solver.ensure_taichi("gpu")
+        print(len([w for w in caught if "already runs on the CPU" in str(w.message)]))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.stdout.strip().splitlines()[-1] == "1", out.stderr
