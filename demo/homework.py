@@ -90,21 +90,22 @@ TASKS = (
     Task(
         id="vbd_sweep", title="The per-colour VBD sweep: assemble and solve each vertex's 3x3 system",
         points=30, chapter="lecture_notes/03-coordinate-descent.md",
-        functions=("solver/vertex_solve.py:force_hessian", "solver/vertex_solve.py:solve_vertex"),
+        functions=("solver/vertex_solve.py:force_hessian", "solver/vertex_solve.py:newton_step"),
         what={"force_hessian": "assemble f_i and H_i of vertex i from its inertia term and the tets "
                                "around it",
-              "solve_vertex": "take vertex i's 3x3 Newton step x_i += H_i^-1 f_i, skipping a singular H_i"},
+              "newton_step": "vertex i's 3x3 Newton step dx = H_i^-1 f_i, zero for a singular H_i"},
         depends=("force_hessian", "coloring"),
         details="In `force_hessian` (solver/vertex_solve.py), add the inertia term `m_i/h^2 (y_i - x_i)` (and "
                 "`m_i/h^2 I`) and loop over the tets around the vertex with `tet_kinematics` and "
-                "`vertex_force_hessian`. In `solve_vertex`, solve the 3x3 system and update `x_i` in place "
+                "`vertex_force_hessian`. In `newton_step`, solve the 3x3 system for the step `dx` "
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
         notes={"force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
                                  "the damping term below uses it).",
                                  "x_i is state[X, i] and y_i is state[Y, i]; the adjacency entries of colour "
                                  "slot k are e in range(offsets[k], offsets[k + 1])."],
-               "solve_vertex": ["i = color_order[k] is the vertex; force_hessian(state, mass, color_order, "
-                                "offsets, others, adj_f, params, k, dtype) gives f, H."]},
+               "newton_step": ["force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, "
+                               "dtype) gives f, H; define dx (3-vector of type dtype), which the line after "
+                               "the region returns."]},
     ),
     Task(
         id="chebyshev", title="Chebyshev acceleration", points=20,

@@ -1,4 +1,4 @@
-"""The incremental potential G of one implicit Euler step, and the inverted-element count, in Taichi.
+"""The incremental potential G of one implicit Euler step, in Taichi.
 
     G(x) = sum_free m_i/(2h^2) |x_i - y_i|^2 + sum_tets vol Psi(F) + sum_free k_c/2 max(0, z0 - z_i)^2
 
@@ -39,13 +39,3 @@ def incremental_potential(state: ti.types.ndarray(), mass: ti.types.ndarray(), f
         F = deformation_gradient(state, tets, Dm_inv, t)
         G += ti.cast(volume[t] * psi(F, params[MU], params[LAM]), ti.f64)
     return G
-
-
-@ti.kernel
-def count_inverted(state: ti.types.ndarray(), tets: ti.types.ndarray(), Dm_inv: ti.types.ndarray()) -> ti.i32:
-    """Number of tets with det F <= 0 (inverted or flat) at the current positions."""
-    n = 0
-    for t in range(tets.shape[0]):
-        if deformation_gradient(state, tets, Dm_inv, t).determinant() <= 0:
-            n += 1
-    return n

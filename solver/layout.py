@@ -27,7 +27,8 @@ GROUND_STIFFNESS = 6  # k_c in N/m
 FRICTION = 7          # Coulomb mu_f
 FRICTION_SPEED = 8    # sliding speed below which friction is smoothed, m/s
 GRAVITY_X = 9         # gravity g in m/s^2, three entries
-PARAM_COUNT = 12
+KEEP_ORIENTATION = 12  # 1: no vertex step may invert a tet (`vertex_solve.step_limit`), 0: plain VBD
+PARAM_COUNT = 13
 
 # Columns of the per-entry adjacency array `adj_f`, shape (E, 6): q (3), c, |m_i|^2, rest volume.
 Q = 0

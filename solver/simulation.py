@@ -24,7 +24,7 @@ import numpy as np
 import taichi as ti
 
 from . import energy as energy_kernels
-from . import implicit_euler
+from . import implicit_euler, orientation
 from . import layout as L
 from . import translation, vertex_solve
 from .backend import as_precision, ensure_taichi
@@ -117,6 +117,7 @@ _READ_ONLY = {
     "coloring": "the colouring", "topology": "the adjacency",
 }
 _DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
+_GUESS_REPAIR_PASSES = 10   # each pass puts the vertices of newly inverted tets back to x_n; then all
 
 
 class Simulation:
@@ -135,11 +136,14 @@ class Simulation:
     precision: "float64" or "float32"; arch: "cpu" or "gpu"; coloring_order: a `VertexOrder`;
     translation_correction: end every step of a body without fixed or kinematic vertices with the
     rigid-translation correction (`translation.py`), which removes the sideways drift of unconverged
-    VBD; record_history: keep G and max |f_i| after every iteration of the last step in `history`.
+    VBD; keep_orientation: never let an upright tet invert (the guess and every vertex step are
+    limited, `orientation.py`; costs about a third more per iteration), for meshes with slivers;
+    record_history: keep G and max |f_i| after every iteration of the last step in `history`.
 
     Live settings, used from the next iteration or step on: `dt`, `gravity`, `damping`, `ground`,
     `chebyshev_rho`, `material` (or `set_material`), `iterations`, `tolerance`, `check_every`,
-    `initial_guess`, `translation_correction`, `kinematic_motion`, `record_history`. Fixed at construction
+    `initial_guess`, `translation_correction`, `keep_orientation`, `kinematic_motion`,
+    `record_history`. Fixed at construction
     (assigning raises `ConfigError`): `mesh`, `fixed_mask`, `kinematic_mask`, `free_mask`,
     `precision`, `arch`, `coloring`, `topology`.
 
@@ -153,7 +157,8 @@ class Simulation:
                  tolerance: Optional[float] = None, check_every: int = 5, kinematic=None,
                  kinematic_motion: Optional[Callable] = None, precision="float64", arch: str = "cpu",
                  coloring_order: VertexOrder = VertexOrder.NATURAL,
-                 translation_correction: bool = True, record_history: bool = False):
+                 translation_correction: bool = True, keep_orientation: bool = False,
+                 record_history: bool = False):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a solver.TetMesh, got {type(mesh).__name__}; "
                               "use solver.load_mesh or solver.box_mesh")
@@ -175,6 +180,7 @@ class Simulation:
         self._settings_ready = False
         self.initial_guess = initial_guess
         self.translation_correction = translation_correction
+        self.keep_orientation = keep_orientation
         self.dt = dt
         self.gravity = gravity
         self.iterations = iterations
@@ -190,7 +196,7 @@ class Simulation:
 
         ensure_taichi(arch)
         self.arch = arch
-        require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.solve_vertex)
+        require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.newton_step)
         if chebyshev_rho is not None:
             require_implemented(chebyshev_omega, chebyshev_update)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
@@ -279,6 +285,7 @@ class Simulation:
             p[L.FRICTION] = self._ground.friction
             p[L.FRICTION_SPEED] = self._ground.friction_speed
         p[L.GRAVITY_X:L.GRAVITY_X + 3] = self._gravity
+        p[L.KEEP_ORIENTATION] = float(self._keep_orientation)
         self._params.from_numpy(p.astype(self._np_dtype))
 
     # -----------------------------------------------------------------------------------------
@@ -379,6 +386,18 @@ class Simulation:
         if not isinstance(value, (bool, np.bool_)):
             raise ConfigError(f"translation_correction must be True or False, got {value!r}")
         self._translation_correction = bool(value)
+
+    @property
+    def keep_orientation(self) -> bool:
+        """Whether the guess and the vertex steps are limited so that no upright tet inverts."""
+        return self._keep_orientation
+
+    @keep_orientation.setter
+    def keep_orientation(self, value):
+        if not isinstance(value, (bool, np.bool_)):
+            raise ConfigError(f"keep_orientation must be True or False, got {value!r}")
+        self._keep_orientation = bool(value)
+        self._upload_params()
 
     @property
     def iterations(self) -> int:
@@ -527,6 +546,12 @@ class Simulation:
             self._kin_targets.from_numpy(self._kinematic_targets(self.time + self._dt).astype(self._np_dtype))
         implicit_euler.begin_step(self.state, self._free, self._kin_ids, self._kin_targets, self._n_kinematic,
                                   self._params, self._initial_guess.code, self.dtype)
+        if self._keep_orientation:
+            for _ in range(_GUESS_REPAIR_PASSES):
+                if orientation.undo_inverting_guess(self.state, self._tets, self._free) == 0:
+                    break
+            else:
+                implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
         self._in_step = True
         self._iteration = 0
         self._omega = 1.0
@@ -645,7 +670,7 @@ class Simulation:
 
     def inverted_count(self) -> int:
         """Number of tets with det F <= 0 (inverted or flat) at the current positions."""
-        return int(energy_kernels.count_inverted(self.state, self._tets, self._Dm_inv))
+        return int(orientation.count_inverted(self.state, self._tets))
 
     def inertial_target(self) -> np.ndarray:
         """(N, 3) y = x_n + h v_n + h^2 g for a step taken from the current state."""

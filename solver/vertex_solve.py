@@ -20,11 +20,12 @@ import taichi as ti
 from .chebyshev import chebyshev_update
 from .contact import ground_force_hessian
 from .layout import (ADJ_FLOATS, C, DAMPING, FRICTION, FRICTION_SPEED, GROUND, GROUND_HEIGHT,
-                     GROUND_STIFFNESS, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
+                     GROUND_STIFFNESS, KEEP_ORIENTATION, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
                      X_N, Y)
 from .material import vertex_force_hessian
 
 assert ADJ_FLOATS == VOLUME + 1
+J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a tenth of its rest volume
 
 
 @ti.func
@@ -84,17 +85,46 @@ def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.tem
 
 
 @ti.func
+def step_limit(state: ti.template(), others: ti.template(), adj_f: ti.template(), offsets: ti.template(), i, k, dx):
+    """The largest alpha in [0, 1] for which the step x_i + alpha dx keeps det F of every tet around
+    vertex i (slot k) at or above J_MIN, or does not shrink it further where it already is below.
+
+    J = det F is affine in x_i with gradient w, so along the step J(alpha) = J + alpha w . dx exactly:
+    a tet that shrinks (w . dx < 0) allows alpha <= (J - J_MIN) / -(w . dx).
+    """
+    alpha = 1.0
+    for e in range(offsets[k], offsets[k + 1]):
+        _, J, w = tet_kinematics(state, i, others, adj_f, e)
+        dJ = w.dot(dx)
+        if J + dJ < J_MIN and dJ < 0:
+            alpha = ti.min(alpha, ti.max(J - J_MIN, 0) / -dJ)
+    return alpha
+
+
+@ti.func
+def newton_step(state: ti.template(), mass: ti.template(), color_order: ti.template(), offsets: ti.template(),
+                others: ti.template(), adj_f: ti.template(), params: ti.template(), k, dtype: ti.template()):
+    """dx = H_i^-1 f_i, the 3x3 Newton step of the vertex in colour slot k, or 0 for a (near)
+    singular H_i (VBD Alg. 1, lines 7-10)."""
+    # BEGIN SOLUTION task=vbd_sweep
+    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    dx = ti.Vector.zero(dtype, 3)
+    if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
+        dx = ti.cast(H.inverse() @ f, dtype)
+    # END SOLUTION
+    return dx
+
+
+@ti.func
 def solve_vertex(state: ti.template(), mass: ti.template(), color_order: ti.template(), offsets: ti.template(),
                  others: ti.template(), adj_f: ti.template(), params: ti.template(), k, dtype: ti.template()):
-    """x_i <- x_i + H_i^-1 f_i for the vertex i in colour slot k, skipping a (near) singular H_i
-    (VBD Alg. 1, lines 7-10)."""
-    # BEGIN SOLUTION task=vbd_sweep
+    """x_i <- x_i + dx for the vertex i in colour slot k, the step shortened by `step_limit` when the
+    simulation keeps tets from inverting."""
     i = color_order[k]
-    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-    det = H.determinant()
-    if ti.abs(det) > 1e-15 * H.norm_sqr() ** 1.5:
-        state[X, i] += ti.cast(H.inverse() @ f, dtype)
-    # END SOLUTION
+    dx = newton_step(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    if params[KEEP_ORIENTATION] > 0:
+        dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
+    state[X, i] += dx
 
 
 @ti.kernel

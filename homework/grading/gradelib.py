@@ -8,7 +8,7 @@ from solver.todo import require_implemented
 
 
 def _resolve(spec: str):
-    """'solver/simulation.py:Simulation._solve_vertex' -> the function object."""
+    """'solver/vertex_solve.py:newton_step' -> the function object."""
     path, name = spec.split(":")
     obj = importlib.import_module(path[:-3].replace("/", "."))
     for part in name.split("."):
