@@ -1,11 +1,14 @@
 """Shared plumbing of the benchmark scripts: command line, Taichi start-up, CSV, tables, timing."""
 import argparse
+import contextlib
 import csv
 import datetime
+import math
 import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -15,23 +18,110 @@ if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
 
+def fail(message: str):
+    """End a benchmark command with a one-line error (exit status 2), no traceback."""
+    print(f"error: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Adds "(default: ...)" to an option's help unless the help already says its default."""
+
+    def _get_help_string(self, action):
+        if "default" in (action.help or "") or action.default is None or isinstance(action.default, bool):
+            return action.help
+        return super()._get_help_string(action)
+
+
+class _Parser(argparse.ArgumentParser):
+    """Bad arguments give a one-line error instead of a usage dump."""
+
+    def error(self, message):
+        fail(f"{message} (see {self.prog} --help)")
+
+
 def parser(description: str, default_out: str) -> argparse.ArgumentParser:
-    """An argparse parser with the options every benchmark has: --out, --quick, --threads."""
-    p = argparse.ArgumentParser(description=description, formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--out", default=default_out, help="folder for the CSV and PNG files")
+    """An argparse parser with the options every benchmark has: --out, --overwrite, --quick, --no-progress.
+
+    Call ``output_folder(args, files)`` after parsing: full runs write into ``default_out`` (the committed
+    results), --quick runs into a new scratch folder, and existing files are replaced only with --overwrite.
+    """
+    p = _Parser(description=description, formatter_class=HelpFormatter)
+    p.set_defaults(results_folder=default_out)
+    p.add_argument("--out", default=None, help=f"folder for the CSV and PNG files (default: {default_out}; with "
+                                                 "--quick a new scratch folder in the system's temporary folder)")
+    p.add_argument("--overwrite", action="store_true", help="replace result files already in --out")
     p.add_argument("--quick", action="store_true", help="a small, fast version (what the tests run)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p
 
 
+def output_folder(args, files) -> str:
+    """Create and return the folder the results go to (also stored in ``args.out``), before any work.
+
+    ``files`` are the names the benchmark writes there; if one exists already and --overwrite was not
+    given, the command ends with a one-line error instead of replacing it.
+    """
+    if args.out is None:
+        name = os.path.basename(os.path.normpath(args.results_folder))
+        args.out = tempfile.mkdtemp(prefix=f"vbd-{name}-quick-") if args.quick else args.results_folder
+    if not args.out.strip():
+        fail("--out is empty; name a folder, for example --out out/results")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as e:
+        fail(f"cannot create output folder {args.out}: {e.strerror}; choose another --out")
+    if not os.access(args.out, os.W_OK):
+        fail(f"cannot write into {args.out}; choose another --out")
+    existing = [f for f in files if os.path.exists(os.path.join(args.out, f))]
+    if existing and not args.overwrite:
+        more = f" and {len(existing) - 1} more" if len(existing) > 1 else ""
+        fail(f"{os.path.join(args.out, existing[0])}{more} already exist; pass --overwrite to replace them "
+             "or --out to choose another folder")
+    return args.out
+
+
+def positive(kind):
+    """An argparse type: a number of ``kind`` (int or float) greater than zero."""
+    def parse(text):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value > 0 or not math.isfinite(value):
+            what = "whole number" if kind is int else "number"
+            raise argparse.ArgumentTypeError(f"expected a positive {what}, got {text!r}")
+        return value
+    parse.__name__ = f"positive {kind.__name__}"
+    return parse
+
+
+def spectral_radius(text):
+    """An argparse type: a Chebyshev rho in (0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a Chebyshev rho between 0 and 1 (exclusive), got {text!r}")
+    return value
+
+
+def quiet_taichi_banner():
+    """Keep Taichi's version banner off stdout, where the summary tables go (call before importing it)."""
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
+
+
 def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     """ti.init on the CPU in float64, optionally with a thread cap and the kernel profiler."""
+    quiet_taichi_banner()
     import taichi as ti
 
     kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)
     if threads:
         kwargs["cpu_max_num_threads"] = int(threads)
-    ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
+    with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not a result
+        ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
 
 
 def seconds_per_call(run, min_seconds=0.1, repeats=3):

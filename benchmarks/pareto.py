@@ -20,10 +20,11 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (Timer, init_taichi, parser, progress, provenance, seconds_per_call, table,
-                               time_to_reach, write_csv)
+from benchmarks.common import (Timer, init_taichi, output_folder, parser, positive, progress, provenance,
+                               seconds_per_call, spectral_radius, table, time_to_reach, write_csv)
 
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
+OUTPUTS = ("pareto.csv", "cases.csv", "time_to_error.csv", "pareto.png", "pareto_energy.png", "summary.md")
 COLUMNS = ["case", "E", "tets", "state", "method", "family", "param", "iterations", "seconds",
            "error", "energy_gap",
            "measured_seconds"]
@@ -175,14 +176,15 @@ def newton_curve(case):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/pareto")
-    p.add_argument("--budget", type=float, default=8.0, help="seconds of solver time for the main VBD curve "
+    p.add_argument("--budget", type=positive(float), default=8.0, help="seconds of solver time for the main VBD curve "
                    "of each case; the variants get a quarter, numpy half")
-    p.add_argument("--max-iterations", type=int, default=20000, help="cap on VBD iterations per curve")
-    p.add_argument("--frames", type=int, default=30, help="frames of falling before the 'moving' step")
-    p.add_argument("--rhos", type=float, nargs="+", default=[0.8, 0.9, 0.95, 0.99],
+    p.add_argument("--max-iterations", type=positive(int), default=20000, help="cap on VBD iterations per curve")
+    p.add_argument("--frames", type=positive(int), default=30, help="frames of falling before the 'moving' step")
+    p.add_argument("--rhos", type=spectral_radius, nargs="+", default=[0.8, 0.9, 0.95, 0.99],
                    help="Chebyshev rho values")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for Taichi (default: all)")
+    p.add_argument("--threads", type=positive(int), default=None, help="CPU threads for Taichi (default: all)")
     args = p.parse_args(argv)
+    output_folder(args, OUTPUTS)
 
     init_taichi(args.threads)
     import solver
@@ -196,7 +198,6 @@ def main(argv=None):
         resolutions = {"3840": (40, 4, 4), "30720": (80, 8, 8)}
         moduli, states = [1e4, 1e6], ["rest", "moving", "stretched"]
         budget, rhos, frames = args.budget, args.rhos, args.frames
-    os.makedirs(args.out, exist_ok=True)
     guesses = [g for g in solver.InitialGuess if g is not solver.InitialGuess.ADAPTIVE]
     n_methods = 1 + len(guesses) + len(rhos) + 2 + 1 + 1
     total = len(resolutions) * len(moduli) * len(states) * n_methods

@@ -1,6 +1,7 @@
 """Headless render speed: one 1280x720 frame of a ~20k-triangle surface on the CPU.
 
-    python benchmarks/render_speed.py --out out/bench
+    python -m benchmarks.render_speed --out out/bench
+    python -m benchmarks.render_speed --quick        # three small frames, into a scratch folder
 
 Times the Taichi rasteriser (draw + copy of the image to NumPy) over a slowly deforming plate
 with a Newton-style ghost and a grid plane, after one warm-up frame (JIT compile). Writes
@@ -12,36 +13,66 @@ The renderer keeps the sky gradient + procedural grid of a viewport while the ca
 worst case of a camera that moves every frame (the column background_recomputed says which).
 """
 import argparse
+import contextlib
 import csv
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import solver  # noqa: E402
-from demo import colours  # noqa: E402
-from demo.render import Body, Camera, GridPlane, Renderer  # noqa: E402
+from benchmarks.common import output_folder, parser, positive, quiet_taichi_banner  # noqa: E402
+
+OUTPUTS = ("render_speed.csv", "render_speed_frame.png")
+
+
+def _triple(text):
+    """Box cells "NX,NY,NZ", each a positive whole number."""
+    try:
+        cells = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        cells = ()
+    if len(cells) != 3 or min(cells) < 1:
+        raise argparse.ArgumentTypeError(f"expected three positive whole numbers like 100,48,2, got {text!r}")
+    return cells
+
+
+def _size(text):
+    try:
+        width, height = (int(v) for v in text.split("x"))
+    except ValueError:
+        width = height = 0
+    if not (16 <= width <= 8192 and 16 <= height <= 8192):
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT between 16 and 8192, like 1280x720, got {text!r}")
+    return width, height
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(formatter_class=argparse.ArgumentDefaultsHelpFormatter, description=__doc__)
-    parser.add_argument("--out", type=Path, required=True, help="folder for render_speed.csv")
-    parser.add_argument("--frames", type=int, default=30, help="timed frames")
-    parser.add_argument("--size", default="1280x720", help="image size WxH")
-    parser.add_argument("--cells", default="100,48,2", help="box cells; boundary triangles = 4(xy + xz + yz)")
-    parser.add_argument("--arch", choices=["cpu", "gpu"], default="cpu")
-    parser.add_argument("--fresh-background", action="store_true",
-                        help="recompute the gradient + grid every frame (a moving camera)")
-    args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.split("x"))
-    cells = tuple(int(v) for v in args.cells.split(","))
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/render_speed")
+    p.add_argument("--frames", type=positive(int), default=30, help="timed frames")
+    p.add_argument("--size", type=_size, default="1280x720", help="image size WxH")
+    p.add_argument("--cells", type=_triple, default="100,48,2", help="box cells; boundary triangles = 4(xy + xz + yz)")
+    p.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
+    p.add_argument("--fresh-background", action="store_true",
+                   help="recompute the gradient + grid every frame (a moving camera)")
+    args = p.parse_args(argv)
+    out = Path(output_folder(args, OUTPUTS))
+    if args.quick:
+        args.frames, args.size, args.cells = 3, (320, 180), (20, 10, 2)
+    width, height = args.size
+    cells = args.cells
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    solver.ensure_taichi(arch=args.arch)
+    quiet_taichi_banner()
+    from PIL import Image
+
+    import solver
+    from demo import colours
+    from demo.render import Body, Camera, GridPlane, Renderer
+
+    with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not a result
+        solver.ensure_taichi(arch=args.arch)
     mesh = solver.box_mesh(size=(1.0, 0.5, 0.02), cells=cells, origin=(-0.5, -0.25, 0.0))
     faces = mesh.boundary_faces()
     rest = mesh.vertices
@@ -64,11 +95,11 @@ def main(argv=None):
         image = renderer.image()
         copied = time.perf_counter()
         if frame == 0:
-            Image.fromarray(image).save(args.out / "render_speed_frame.png")
+            Image.fromarray(image).save(out / "render_speed_frame.png")
         else:
             rows.append((frame, 1e3 * (drawn - start), 1e3 * (copied - drawn), 1e3 * (copied - start), _png_ms(image)))
 
-    path = args.out / "render_speed.csv"
+    path = out / "render_speed.csv"
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(["frame", "draw_ms", "readback_ms", "render_ms", "png_encode_ms", "background_recomputed"])
@@ -82,6 +113,8 @@ def main(argv=None):
 
 def _png_ms(image):
     import io
+
+    from PIL import Image
 
     start = time.perf_counter()
     Image.fromarray(image).save(io.BytesIO(), format="PNG", compress_level=1)

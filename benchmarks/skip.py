@@ -24,7 +24,9 @@ import time
 
 import numpy as np
 
-from benchmarks.common import init_taichi, parser, progress, provenance, table, write_csv
+from benchmarks.common import init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
+
+OUTPUTS = ("skip.csv", "skip.png", "summary.md")
 
 
 def profiled_kernels(run):
@@ -66,8 +68,9 @@ def per_iteration(sim, seconds):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/skip")
-    p.add_argument("--min-seconds", type=float, default=0.3, help="length of each timing")
+    p.add_argument("--min-seconds", type=positive(float), default=0.3, help="length of each timing")
     args = p.parse_args(argv)
+    output_folder(args, OUTPUTS)
     os.environ["VBD_CACHE_DIR"] = ""             # no disk cache: measure the first colouring for real
     init_taichi(kernel_profiler=True)
     import solver
@@ -171,7 +174,6 @@ def main(argv=None):
     bar.update(1)
     bar.close()
 
-    os.makedirs(args.out, exist_ok=True)
     cols = ["check", "scene", "measure", "value", "time_per_iteration_ms", "saved_s", "ok"]
     write_csv(os.path.join(args.out, "skip.csv"), rows, cols)
     plot(times, os.path.join(args.out, "skip.png"), mesh.n_tets)

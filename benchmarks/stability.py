@@ -36,13 +36,14 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import init_taichi, parser, progress, provenance, table, write_csv
+from benchmarks.common import init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
 
 DTS = (1 / 1000, 1 / 240, 1 / 60, 1 / 10)
 MODULI = (1e3, 1e4, 1e6, 1e8, 1e10)
 NUS = (0.0, 0.3, 0.45, 0.49, 0.499)
 STATES = ("rest", "noise", "inverted", "flat", "velocity")
 RESOLUTIONS = {"coarse": (6, 2, 2), "fine": (12, 4, 4)}
+OUTPUTS = ("stability.csv", "stability.png", "summary.md")
 COLUMNS = ["resolution", "tets", "dt", "E", "nu", "state", "finite", "monotone", "max_rise", "recovers",
            "recovery_iterations", "recovery_max_dev", "recovery_min_J", "newton_recovers", "error", "newton_converged",
            "passed", "seconds"]
@@ -221,12 +222,13 @@ def grid(quick=False, all_cells=False):
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/stability")
     p.add_argument("--all", action="store_true", help="the whole grid at both resolutions (1000 cells)")
-    p.add_argument("--iterations", type=int, default=20, help="VBD iterations per step")
-    p.add_argument("--steps", type=int, default=3, help="time steps per cell")
-    p.add_argument("--recovery-rounds", type=int, default=5, help="quasi-static recovery steps")
-    p.add_argument("--recovery-iterations", type=int, default=200, help="VBD iterations per recovery step")
-    p.add_argument("--threads", type=int, default=1, help="CPU threads (tiny meshes: 1 is fastest)")
+    p.add_argument("--iterations", type=positive(int), default=20, help="VBD iterations per step")
+    p.add_argument("--steps", type=positive(int), default=3, help="time steps per cell")
+    p.add_argument("--recovery-rounds", type=positive(int), default=5, help="quasi-static recovery steps")
+    p.add_argument("--recovery-iterations", type=positive(int), default=200, help="VBD iterations per recovery step")
+    p.add_argument("--threads", type=positive(int), default=1, help="CPU threads (tiny meshes: 1 is fastest)")
     args = p.parse_args(argv)
+    output_folder(args, OUTPUTS)
     init_taichi(args.threads)
     cells = grid(args.quick, args.all)
     runners = {}
@@ -239,7 +241,6 @@ def main(argv=None):
         row = runners[res].cell(*cell[1:])
         row["resolution"] = res
         rows.append(row)
-    os.makedirs(args.out, exist_ok=True)
     write_csv(os.path.join(args.out, "stability.csv"), rows, COLUMNS)
     plot(rows, os.path.join(args.out, "stability.png"))
     text = report(rows)

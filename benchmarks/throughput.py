@@ -24,11 +24,12 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (ROOT, init_taichi, parser, progress, provenance, seconds_per_call, table,
+from benchmarks.common import (ROOT, init_taichi, output_folder, parser, positive, progress, provenance, seconds_per_call, table,
                                write_csv)
 
 FULL_SIZES = [(12, 4, 4), (16, 6, 6), (20, 10, 10), (30, 14, 12), (40, 20, 20), (60, 30, 30), (100, 40, 42)]
 QUICK_SIZES = [(6, 2, 2), (12, 4, 4)]
+OUTPUTS = ("throughput.csv", "scaling_fit.csv", "throughput.png", "summary.md")
 FLOPS_PER_ENTRY = 105      # per (vertex, tet) pair: kinematics ~48, force ~14, Hessian ~31, sums 12
 FLOPS_PER_VERTEX = 80      # inertia terms, determinant, 3x3 inverse and product
 COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_per_tet_iter",
@@ -178,11 +179,11 @@ def fit_exponent(tets, seconds):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/throughput")
-    p.add_argument("--threads", type=int, nargs="+", default=[1, 2], help="CPU thread counts, one worker each")
-    p.add_argument("--min-seconds", type=float, default=0.6, help="timing length of each measurement")
-    p.add_argument("--newton-max-tets", type=int, default=40_000,
+    p.add_argument("--threads", type=positive(int), nargs="+", default=[1, 2], help="CPU thread counts, one worker each")
+    p.add_argument("--min-seconds", type=positive(float), default=0.6, help="timing length of each measurement")
+    p.add_argument("--newton-max-tets", type=positive(int), default=40_000,
                    help="largest mesh for the Newton iteration (sparse direct solve)")
-    p.add_argument("--max-tets", type=int, default=2_000_000, help="skip meshes larger than this")
+    p.add_argument("--max-tets", type=positive(int), default=2_000_000, help="skip meshes larger than this")
     p.add_argument("--worker", action="store_true", help=argparse_hidden())
     p.add_argument("--extras", action="store_true", help=argparse_hidden())
     p.add_argument("--sizes", default=None, help=argparse_hidden())
@@ -193,7 +194,7 @@ def main(argv=None):
 
     sizes = QUICK_SIZES if args.quick else [c for c in FULL_SIZES if 6 * np.prod(c) <= args.max_tets]
     min_seconds = 0.03 if args.quick else args.min_seconds
-    os.makedirs(args.out, exist_ok=True)
+    output_folder(args, OUTPUTS)
     rows = []
     bar = progress(total=len(sizes) * 2 * len(args.threads), desc="throughput", disable=args.no_progress)
     for threads in args.threads:

@@ -4,46 +4,29 @@ With no command it renders the default scene (the stiffness sweep) headless into
 ``out/stiffness_sweep/``: numbered PNG frames and an mp4.
 """
 import argparse
+import os
 import re
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
+if __name__ == "__main__":
+    # Taichi prints a version banner to stdout when imported; keep stdout for what the user asked
+    # for (help, the scene list, results). ENABLE_TAICHI_HEADER_PRINT=1 brings it back.
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
-import solver
+import numpy as np  # noqa: E402
 
-from .errors import DemoError
+import solver  # noqa: E402
+
+from .cli import HelpFormatter, Parser, folder, image_size, positive  # noqa: E402
+from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
+# the names `render` writes (see planned_files); --overwrite removes earlier ones that this run does not replace
+FRAME_PATTERN = re.compile(r"frame_\d{4}\.png")
+MESH_PATTERN = re.compile(r"frame_\d{4}_panel\d+\.(vtu|ply|obj)")
 DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
-
-
-class _Parser(argparse.ArgumentParser):
-    """An argument parser whose errors are one-line DemoErrors instead of usage dumps."""
-
-    def error(self, message):
-        raise DemoError(f"{message} (see {self.prog} --help)")
-
-
-def _size(text):
-    match = re.fullmatch(r"(\d+)x(\d+)", text)
-    if not match:
-        raise argparse.ArgumentTypeError(f"bad size {text!r}: expected WIDTHxHEIGHT, for example 1280x720")
-    width, height = int(match[1]), int(match[2])
-    if not (16 <= width <= 8192 and 16 <= height <= 8192):
-        raise argparse.ArgumentTypeError(f"bad size {text!r}: width and height must be between 16 and 8192")
-    return width, height
-
-
-def _positive(text):
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}")
-    return value
 
 
 def build_parser():
@@ -51,20 +34,20 @@ def build_parser():
     from .export import ExportFormat
     from .video import VideoFormat
 
-    formatter = argparse.ArgumentDefaultsHelpFormatter
-    parser = _Parser(prog="python -m demo", formatter_class=formatter,
+    formatter = HelpFormatter
+    parser = Parser(prog="python -m demo", formatter_class=formatter,
                      description="VBD teaching demos: headless image sequences and video, or an interactive "
                                  "window. With no command: render the stiffness sweep into out/stiffness_sweep/.")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     sub.add_parser("list", help="list the scenes", formatter_class=formatter)
 
     render = sub.add_parser("render", help="render a scene headless to PNG frames (+ video, + meshes)",
                             formatter_class=formatter)
     render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
-    render.add_argument("--frames", type=_positive, default=None, help="number of frames (default: the scene's own)")
-    render.add_argument("--out", type=Path, default=None, help="output folder (default: out/SCENE)")
-    render.add_argument("--size", type=_size, default="1280x720", metavar="WxH", help="image size in pixels")
-    render.add_argument("--fps", type=_positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--frames", type=positive, default=None, help="number of frames (default: the scene's own)")
+    render.add_argument("--out", type=folder, default=None, help="output folder (default: out/SCENE)")
+    render.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="image size in pixels")
+    render.add_argument("--fps", type=positive, default=None, help="video frame rate (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
                         help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
@@ -75,7 +58,7 @@ def build_parser():
                                  formatter_class=formatter)
     interactive.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
-    interactive.add_argument("--size", type=_size, default="1280x720", metavar="WxH", help="window size in pixels")
+    interactive.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="window size in pixels")
 
     sub.add_parser("homework", help="homework tools (python -m demo homework --help)", add_help=False)
     sub.add_parser("figures", help="lecture figures (python -m demo figures --help)", add_help=False)
@@ -118,6 +101,16 @@ def prepare_output(out, files, overwrite):
         more = f" and {len(existing) - 1} more" if len(existing) > 1 else ""
         raise DemoError(f"{existing[0]}{more} already exist; pass --overwrite to replace them or --out to "
                         f"choose another folder")
+    if overwrite:
+        # frames and meshes an earlier, longer render left behind would sit beside the new video
+        planned = set(files)
+        stale = [f for pattern, where in ((FRAME_PATTERN, out), (MESH_PATTERN, out / "meshes")) if where.is_dir()
+                 for f in where.iterdir() if pattern.fullmatch(f.name) and f not in planned]
+        try:
+            for f in stale:
+                f.unlink()
+        except OSError as e:
+            raise DemoError(f"cannot remove the earlier frame {f}: {e.strerror}") from None
 
 
 def render(args):

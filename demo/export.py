@@ -19,7 +19,7 @@ def export_mesh(path, export_format, positions, tets, faces, point_data=None):
         mesh = meshio.Mesh(points, [("tetra", np.asarray(tets, dtype=np.int64))], point_data=point_data or {})
     else:
         used = np.unique(faces)
-        remap = np.full(len(points), -1, dtype=np.int64)
+        remap = np.full(len(points), -1, dtype=np.int32)     # PLY has no 64-bit integers
         remap[used] = np.arange(len(used))
         mesh = meshio.Mesh(points[used], [("triangle", remap[faces])])
     meshio.write(str(path), mesh, file_format={"vtu": "vtu", "ply": "ply", "obj": "obj"}[export_format.value])

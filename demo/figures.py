@@ -18,7 +18,6 @@ The measurement set-up follows ``../shared/vbd-facts.md``: a 1 x 0.1 x 0.1 m bar
 nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, gravity -9.81 z, float64 on the CPU, error
 ||x - x*|| / ||x* - x_n|| against the converged global Newton step x*.
 """
-import argparse
 import ast
 import json
 import re
@@ -485,9 +484,12 @@ SECTIONS = {
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m demo figures",
-                                     description="Regenerate every figure, table and number of lecture_notes/.",
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    from . import cli
+    from .errors import DemoError
+
+    parser = cli.Parser(prog="python -m demo figures",
+                        description="Regenerate every figure, table and number of lecture_notes/.",
+                        formatter_class=cli.HelpFormatter)
     parser.add_argument("--only", default="", help="comma-separated sections to run (see --list); "
                                                    "'excerpts' refreshes only the code excerpts")
     parser.add_argument("--list", action="store_true", help="list the sections")
@@ -495,13 +497,16 @@ def main(argv=None):
     parser.add_argument("--full", action="store_true", help="include the 31k-tet meshes (slow)")
     parser.add_argument("--out", type=Path, default=FIGURES, help="figures folder")
     parser.add_argument("--notes", type=Path, default=NOTES, help="lecture notes folder")
-    parser.add_argument("--size", default="960x420", help="rendered frame size WxH")
+    parser.add_argument("--size", type=cli.image_size, default="960x420", help="rendered frame size WxH")
     args = parser.parse_args(argv)
     if args.list:
         for name, fn in SECTIONS.items():
             print(name)
         print("excerpts")
         return 0
+    if not chapters(args.notes):
+        raise DemoError(f"no lecture-note chapters (NN-*.md) in {args.notes}; pass --notes with the "
+                        f"lecture_notes folder")
     numbers_path = args.out / NUMBERS
     numbers = json.loads(numbers_path.read_text()) if numbers_path.exists() else {}
     if args.check:
@@ -515,10 +520,8 @@ def main(argv=None):
     selected = [s for s in args.only.split(",") if s] or list(SECTIONS)
     unknown = [s for s in selected if s not in SECTIONS and s != "excerpts"]
     if unknown:
-        from .errors import DemoError
-
         raise DemoError(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}, excerpts")
-    width, height = (int(v) for v in args.size.split("x"))
+    width, height = args.size
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     for name in selected:

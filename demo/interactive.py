@@ -2,9 +2,17 @@
 
 Controls are methods of ``InteractiveApp`` so that the window's buttons, the keyboard and the
 tests all drive the same code. ``InteractiveApp(..., show_window=False)`` runs off screen.
+
+Every panel keeps its own settings (``runner.PanelSettings``): the sliders change the panel chosen
+under "edit" (or every panel, each keeping its other settings), always through ``PanelSim.apply``,
+and each panel's line in the controls names its current settings once they differ from the scene's.
 """
 import dataclasses
 import math
+import os
+import sys
+import textwrap
+from pathlib import Path
 
 import numpy as np
 import taichi as ti
@@ -22,12 +30,33 @@ HELP = ("space play/pause | n step | i one iteration | r reset | left-drag a ver
 
 
 COLOUR_OPTIONS = (scenes.ColourBy.BODY, scenes.ColourBy.COLOUR_SETS, scenes.ColourBy.RESIDUAL)
+CONTROLS_WIDTH = 0.3        # of the window width
+CHAR_WIDTH = 8.6            # pixels per character of GGUI's built-in font
+LINE_HEIGHT = 18            # pixels per line of text
+TITLE_HEIGHT = 50           # pixels of a sub-window's title bar and margins
+OPAQUE = 1.0                # alpha of the per-vertex colours (GGUI takes RGBA)
+
+
+def check_display():
+    """A one-line DemoError when no display can show the window (GLFW would end the process instead)."""
+    if not sys.platform.startswith("linux") or os.environ.get("WAYLAND_DISPLAY"):
+        return
+    display = os.environ.get("DISPLAY", "")
+    local = display.startswith(":") and display[1:].split(".")[0].isdigit()
+    socket = Path("/tmp/.X11-unix") / f"X{display[1:].split('.')[0]}" if local else None
+    if not display or (socket is not None and not socket.exists()):
+        found = f"DISPLAY={display} has no X server" if display else "DISPLAY is not set"
+        raise DemoError(f"the interactive window needs a display ({found}): run it on a desktop or under a "
+                        "virtual one (xvfb-run python -m demo interactive); headless rendering works "
+                        "anywhere: python -m demo render")
 
 
 class InteractiveApp:
     """One window showing one scene's panels side by side in 3D, with controls."""
 
     def __init__(self, scene_name=scenes.DEFAULT_SCENE, arch="cpu", size=(1280, 720), show_window=True):
+        if show_window:
+            check_display()
         solver.ensure_taichi(arch=arch)
         self.arch = arch
         try:
@@ -59,26 +88,38 @@ class InteractiveApp:
             p.ghost_enabled = False
         extent = np.ptp(self.panels[0].sim.positions[:, 0]) if self.panels else 1.0
         self.offsets = [np.array([1.4 * extent * i, 0.0, 0.0]) for i in range(len(self.panels))]
+        self.selected = None        # the panel index the sliders change; None: every panel
+        # our own normals and RGBA colours: GGUI's kernels for the defaults assign float64 literals
+        # to float32 fields (a page of precision warnings at start)
         self.vertex_fields, self.colour_fields, self.ghost_fields, self.index_fields = [], [], [], []
+        self.normal_fields, self.ghost_normal_fields = [], []
         for p in self.panels:
             n = p.sim.positions.shape[0]
             self.vertex_fields.append(ti.Vector.field(3, ti.f32, n))
-            self.colour_fields.append(ti.Vector.field(3, ti.f32, n))
+            self.colour_fields.append(ti.Vector.field(4, ti.f32, n))
             self.ghost_fields.append(ti.Vector.field(3, ti.f32, n))
+            self.normal_fields.append(ti.Vector.field(3, ti.f32, n))
+            self.ghost_normal_fields.append(ti.Vector.field(3, ti.f32, n))
             indices = ti.field(ti.i32, p.faces.size)
             indices.from_numpy(p.faces.ravel().astype(np.int32))
             self.index_fields.append(indices)
-        first = self.panels[0]
-        material = first.panel.material
-        self.log_e = math.log10(material.youngs_modulus)
-        self.iterations = first.sim.iterations
-        self.dt = first.sim.dt
-        self.rho = first.panel.chebyshev_rho or 0.0
+        self._aim_camera(extent)
+
+    def _aim_camera(self, extent):
+        """The scene's camera, moved back until every panel fits beside the controls and shifted so that
+        the bodies sit right of them."""
         cam = self.scene.camera
-        # look a little to the left of the bodies so they sit right of the controls panel
-        centre = np.mean([o for o in self.offsets], axis=0) - np.array([0.25 * max(extent, 0.5), 0.0, 0.0])
-        self.camera.position(*(np.asarray(cam.eye) + centre))
-        self.camera.lookat(*(np.asarray(cam.target) + centre))
+        eye, target = np.asarray(cam.eye, float), np.asarray(cam.target, float)
+        right, _, forward = cam.basis()
+        width, height = self.window.get_window_shape()
+        # the view's width (m) at the target per metre of distance
+        view_width = 2.0 * math.tan(math.radians(cam.fov_degrees) / 2.0) * width / height
+        span = 1.4 * extent * (len(self.panels) - 1) + extent
+        free = 1.0 - CONTROLS_WIDTH - 0.05
+        distance = max(float(np.linalg.norm(target - eye)), 1.1 * span / (free * view_width))
+        centre = np.mean(self.offsets, axis=0) - right * (CONTROLS_WIDTH / 2.0) * distance * view_width
+        self.camera.position(*(target + centre - forward * distance))
+        self.camera.lookat(*(target + centre))
         self.camera.up(*cam.up)
         self.camera.fov(cam.fov_degrees)
 
@@ -106,38 +147,35 @@ class InteractiveApp:
             p.reset()
         self.drag = None
 
+    def select_panel(self, index):
+        """Let the sliders change panel ``index`` (0 = leftmost) only, or every panel with None."""
+        if index is not None and not 0 <= index < len(self.panels):
+            raise DemoError(f"panel {index} does not exist; this scene has {len(self.panels)}")
+        self.selected = index
+
+    @property
+    def shown_settings(self):
+        """The settings the sliders show: the selected panel's, or the first panel's when editing all."""
+        return self.panels[self.selected or 0].settings
+
+    def _change(self, **fields):
+        """Change ``fields`` of the edited panels' settings; every other setting of each panel stays."""
+        targets = self.panels if self.selected is None else [self.panels[self.selected]]
+        for p in targets:
+            p.apply(dataclasses.replace(p.settings, **fields))
+
     def set_youngs_modulus(self, log10_e):
-        self.log_e = float(log10_e)
-        for p in self.panels:
-            p.sim.set_material(dataclasses.replace(p.sim.material, youngs_modulus=10.0 ** self.log_e))
+        self._change(youngs_modulus=10.0 ** float(log10_e))
 
     def set_iterations(self, n):
-        self.iterations = int(n)
-        for p in self.panels:
-            p.sim.iterations = self.iterations
+        self._change(iterations=int(n))
 
     def set_dt(self, dt):
-        self.dt = float(dt)
-        for p in self.panels:
-            p.finish_step()
-            p.sim.dt = self.dt
+        self._change(dt=float(dt))
 
     def set_chebyshev_rho(self, rho):
-        """rho = 0 switches Chebyshev acceleration off. Turning it on or off rebuilds the simulations."""
-        rho = float(rho)
-        if (rho > 0) != (self.rho > 0):
-            self.panels = [PanelSim(self.scene, dataclasses.replace(p.panel, chebyshev_rho=rho if rho > 0 else None,
-                                                                    iterations=self.iterations), self.arch,
-                                    ghost_mode=GhostMode.STEP)
-                           for p in self.panels]
-            for p in self.panels:
-                p.ghost_enabled = self.show_ghost
-                p.sim.dt = self.dt
-                p.sim.set_material(dataclasses.replace(p.sim.material, youngs_modulus=10.0 ** self.log_e))
-        elif rho > 0:
-            for p in self.panels:
-                p.sim.chebyshev_rho = rho
-        self.rho = rho
+        """rho = 0 switches Chebyshev acceleration off (the slider stops at the scene's stable limit)."""
+        self._change(chebyshev_rho=float(rho))
 
     def set_ghost(self, on):
         self.show_ghost = bool(on)
@@ -216,10 +254,14 @@ class InteractiveApp:
 
     def _controls(self):
         gui = self.window.get_gui()
-        with gui.sub_window("help", 0.0, 0.91, 1.0, 0.09) as w:
-            w.text(HELP)
-        with gui.sub_window("VBD", 0.01, 0.01, 0.27, 0.88) as w:
-            w.text(f"scene: {self.scene.name}")
+        window_width, window_height = self.window.get_window_shape()
+        status = [f"scene {self.scene.name} | {HELP}"] + [line for i in range(len(self.panels))
+                           for line in self.panel_lines(i, int(window_width / CHAR_WIDTH) - 2)]
+        band = min(0.5, (LINE_HEIGHT * len(status) + TITLE_HEIGHT) / window_height)
+        with gui.sub_window("help and panels", 0.0, 1.0 - band, 1.0, band) as w:
+            for line in status:
+                w.text(line)
+        with gui.sub_window("VBD", 0.01, 0.01, CONTROLS_WIDTH, 0.98 - band) as w:
             if w.button("pause" if self.playing else "play"):
                 self.toggle_play()
             if w.button("single step"):
@@ -228,38 +270,53 @@ class InteractiveApp:
                 self.single_iteration()
             if w.button("reset"):
                 self.reset()
-            log_e = w.slider_float("log10 E (Pa)", self.log_e, 3.0, 8.0)
-            if log_e != self.log_e:
+            if len(self.panels) > 1:
+                for index, name in [(None, "edit: every panel")] + [(i, f"edit: panel {i + 1}")
+                                                                     for i in range(len(self.panels))]:
+                    if w.checkbox(name, self.selected == index) and self.selected != index:
+                        self.select_panel(index)
+            shown = self.shown_settings
+            log_e = w.slider_float("log10 E (Pa)", math.log10(shown.youngs_modulus), 3.0, 8.0)
+            if _moved(log_e, math.log10(shown.youngs_modulus)):
                 self.set_youngs_modulus(log_e)
-            iterations = w.slider_int("iterations", self.iterations, 1, 200)
-            if iterations != self.iterations:
+            iterations = w.slider_int("iterations", shown.iterations, 1, 200)
+            if iterations != shown.iterations:
                 self.set_iterations(iterations)
-            dt = w.slider_float("dt (s)", self.dt, 1.0 / 480.0, 1.0 / 30.0)
-            if dt != self.dt:
+            dt = w.slider_float("dt (s)", shown.dt, 1.0 / 480.0, 1.0 / 30.0)
+            if _moved(dt, shown.dt):
                 self.set_dt(dt)
-            rho = w.slider_float("Chebyshev rho (0 = off)", self.rho, 0.0, 0.99)
-            if rho != self.rho:
+            w.text(f"Chebyshev rho (0 = off; stable to {self.scene.max_chebyshev_rho}):")
+            rho = w.slider_float("rho", shown.chebyshev_rho, 0.0, self.scene.max_chebyshev_rho)
+            if _moved(rho, shown.chebyshev_rho):
                 self.set_chebyshev_rho(rho)
             for option in COLOUR_OPTIONS:
                 if w.checkbox(f"colour: {option.value}", self.colour_by is option) and self.colour_by is not option:
                     self.set_colour_by(option)
-            ghost = w.checkbox("Newton ghost (slow: one Newton solve per step)", self.show_ghost)
+            ghost = w.checkbox("Newton ghost (slow)", self.show_ghost)
             if ghost != self.show_ghost:
                 self.set_ghost(ghost)
-            w.text("scenes:")
             for name in scenes.SCENES:
-                if w.button(name):
+                if w.button(f"load {name}"):
                     self.load(name)
                     return
-            for p in self.panels:
-                error = f", error {p.error:.3f}" if p.error is not None and self.show_ghost else ""
-                w.text(f"{p.panel.label}: t = {p.sim.time:.2f} s{error}")
-            w.text(HELP)
+
+    def panel_lines(self, index, width=40):
+        """What the controls say about panel ``index``: what it simulates, its clock and error (or why it
+        stopped), wrapped to ``width`` characters."""
+        p = self.panels[index]
+        line = f"panel {index + 1}: {p.label}, t = {p.sim.time:.2f} s"
+        if p.error is not None and self.show_ghost:
+            line += f", error {p.error:.3f}"
+        lines = [line] + ([p.failure] if p.failure else [])
+        return [packed for i, line in enumerate(lines) for packed in _wrap(line, width, first_indent=i > 0)]
 
     def _upload(self):
         for i, p in enumerate(self.panels):
+            if p.failure is not None:       # not drawn
+                continue
             x = p.sim.positions
             self.vertex_fields[i].from_numpy((x + self.offsets[i]).astype(np.float32))
+            self.normal_fields[i].from_numpy(vertex_normals(x, p.faces).astype(np.float32))
             if self.colour_by is scenes.ColourBy.COLOUR_SETS:
                 rgb = colours.categorical(p.sim.colors)
             elif self.colour_by is scenes.ColourBy.RESIDUAL:
@@ -267,9 +324,10 @@ class InteractiveApp:
                 rgb = colours.sequential(colours.normalise(r, 1e-6, max(float(r.max()), 1e-5), log=True))
             else:
                 rgb = colours.uniform(len(x))
-            self.colour_fields[i].from_numpy(rgb.astype(np.float32))
+            self.colour_fields[i].from_numpy(np.c_[rgb, np.full(len(x), OPAQUE)].astype(np.float32))
             if self.show_ghost and p.ghost is not None:
                 self.ghost_fields[i].from_numpy((p.ghost + self.offsets[i]).astype(np.float32))
+                self.ghost_normal_fields[i].from_numpy(vertex_normals(p.ghost, p.faces).astype(np.float32))
 
     def frame(self):
         """Handle input, advance if playing, draw. One call per displayed frame."""
@@ -283,10 +341,13 @@ class InteractiveApp:
         self.scene3d.ambient_light((0.35, 0.35, 0.35))
         self.scene3d.point_light(pos=tuple(np.asarray(self.scene.camera.eye) + (0.0, 0.0, 3.0)), color=(0.9, 0.9, 0.9))
         for i, p in enumerate(self.panels):
-            self.scene3d.mesh(self.vertex_fields[i], indices=self.index_fields[i],
+            if p.failure is not None:       # a diverged body is far away (or not finite): its label explains
+                continue
+            self.scene3d.mesh(self.vertex_fields[i], indices=self.index_fields[i], normals=self.normal_fields[i],
                               per_vertex_color=self.colour_fields[i], two_sided=True)
             if self.show_ghost and p.ghost is not None:
-                self.scene3d.mesh(self.ghost_fields[i], indices=self.index_fields[i], color=GHOST_COLOUR,
+                self.scene3d.mesh(self.ghost_fields[i], indices=self.index_fields[i],
+                                  normals=self.ghost_normal_fields[i], color=GHOST_COLOUR,
                                   show_wireframe=True, two_sided=True)
         self.canvas.set_background_color((0.9, 0.91, 0.93))
         self.canvas.scene(self.scene3d)
@@ -308,6 +369,38 @@ class InteractiveApp:
         if not self.show_window and getattr(self, "_last_image", None) is not None:
             return self._last_image
         return self.window.get_image_buffer_as_numpy()
+
+
+def vertex_normals(x, faces):
+    """Unit normals (N, 3) at the vertices x (N, 3) of the triangles ``faces`` (F, 3): the normalised
+    sum of the unit normals of the triangles around each vertex."""
+    n = np.cross(x[faces[:, 1]] - x[faces[:, 0]], x[faces[:, 2]] - x[faces[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    summed = np.stack([sum(np.bincount(faces[:, k], n[:, d], minlength=len(x)) for k in range(3))
+                       for d in range(3)], axis=1)
+    return summed / np.maximum(np.linalg.norm(summed, axis=1, keepdims=True), 1e-300)
+
+
+def _wrap(line, width, first_indent):
+    """``line`` in lines of at most ``width`` characters, broken after commas where possible (so that
+    "dt = 1/60 s" stays together), continuation lines indented."""
+    indent = "   "
+    out, current = [], indent if first_indent else ""
+    for part in line.split(", "):
+        joined = f"{current}, {part}" if current.strip() else current + part
+        if len(joined) <= width or not current.strip():
+            current = joined
+        else:
+            out.append(current + ",")
+            current = indent + part
+    out.append(current)
+    return [piece for text in out for piece in textwrap.wrap(text, width, subsequent_indent=indent,
+                                                             drop_whitespace=False) or [text]]
+
+
+def _moved(value, shown):
+    """True when a slider moved: GGUI hands back float32, so an untouched slider differs by round-off."""
+    return not math.isclose(value, shown, rel_tol=1e-6, abs_tol=1e-9)
 
 
 def run(scene_name, arch="cpu", size=(1280, 720)):

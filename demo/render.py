@@ -174,8 +174,8 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
     keeps it while those stay the same. Where the body covers a pixel it replaces this colour, so
     the grid needs no depth test against the body.
     """
-    cx = 0.5 * ti.cast(x0 + x1, ti.f32)
-    cy = 0.5 * ti.cast(y0 + y1, ti.f32)
+    cx = ti.f32(0.5) * ti.cast(x0 + x1, ti.f32)
+    cy = ti.f32(0.5) * ti.cast(y0 + y1, ti.f32)
     eye = ti.Vector([frame[3, 0], frame[3, 1], frame[3, 2]])
     right = ti.Vector([frame[0, 0], frame[0, 1], frame[0, 2]])
     up = ti.Vector([frame[1, 0], frame[1, 1], frame[1, 2]])
@@ -188,11 +188,11 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
     spacing = grid[6]
     plane = (point - eye).dot(normal)
     for r in range(y0, y1):     # one thread per row, columns in order
-        py = ti.cast(r, ti.f32) + 0.5
+        py = ti.cast(r, ti.f32) + ti.f32(0.5)
         t = (py - ti.cast(y0, ti.f32)) / ti.cast(y1 - y0, ti.f32)
         sky = top * (1.0 - t) + bottom * t
         for c in range(x0, x1):
-            px = ti.cast(c, ti.f32) + 0.5
+            px = ti.cast(c, ti.f32) + ti.f32(0.5)
             rgb = sky
             if has_grid != 0:
                 ray = forward + right * ((px - cx) / focal) - up * ((py - cy) / focal)
@@ -208,7 +208,7 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
                             if ti.abs(normal[d]) < 0.5:
                                 u = hit[d] / spacing
                                 dist = ti.abs(u - ti.round(u)) * spacing
-                                line = ti.max(line, ti.max(0.0, 1.0 - dist / width))
+                                line = ti.max(line, ti.max(ti.f32(0.0), ti.f32(1.0) - dist / width))
                         a = ti.cast(0.6, ti.f32) * line / (1.0 + ti.cast(0.3, ti.f32) * s)
                         rgb = sky * (1.0 - a) + grid_colour * a
             for j in ti.static(range(3)):

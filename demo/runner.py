@@ -1,4 +1,5 @@
 """Turn a ``Scene`` into running simulations and, frame by frame, into what should be drawn."""
+import dataclasses
 import warnings
 from dataclasses import dataclass
 
@@ -12,6 +13,11 @@ from .scenes import Advance, ColourBy
 # Newton stops once its step is below 1e-6 of the body size (a micrometre on a 1 m bar): far below
 # what a frame shows, and a warm start from the VBD result gets there in two to four iterations
 NEWTON_TOLERANCE = 1e-6
+# a body whose vertices have moved further than this many body sizes from their rest positions has
+# diverged (Chebyshev with rho above the iteration's spectral radius grows without bound; the
+# positions stay finite for many steps, e.g. 1e26 m after 10 steps)
+DIVERGED_BODY_SIZES = 100.0
+DRIFT_SHOWN = 0.01      # m: a sideways drift of the centre of mass below this is not labelled
 
 
 class GhostMode:
@@ -31,6 +37,23 @@ class PanelState:
     ghost: np.ndarray       # reference positions, or None
     lines: list             # label lines
     error: float            # relative error of this step against its Newton solution x*, or None
+
+
+@dataclass(frozen=True)
+class PanelSettings:
+    """What the interactive window changes in one panel while it runs."""
+
+    youngs_modulus: float   # E, Pa
+    iterations: int         # VBD iterations per time step
+    dt: float               # time step, s
+    chebyshev_rho: float    # Chebyshev spectral radius estimate; 0 switches the acceleration off
+
+    def describe(self):
+        """One line naming every setting, e.g. "E = 2.5e5 Pa, 20 it., dt = 1/60 s, Chebyshev rho 0.9"."""
+        mantissa, exponent = f"{self.youngs_modulus:.1e}".split("e")
+        e = f"{mantissa.removesuffix('.0')}e{int(exponent)}"
+        rho = f", Chebyshev rho {self.chebyshev_rho:.3g}" if self.chebyshev_rho > 0 else ""
+        return f"E = {e} Pa, {self.iterations} it., dt = {_fraction(self.dt)} s{rho}"
 
 
 class PanelSim:
@@ -63,6 +86,9 @@ class PanelSim:
             kinematic=kinematic if kinematic.any() else None,
             kinematic_motion=panel.motion if kinematic.any() else None, arch=arch)
         self.sim = solver.Simulation(**self._settings)
+        self.scene_settings = self.settings
+        self.rest = mesh.vertices
+        self.size = float(np.ptp(mesh.vertices, axis=0).max())    # m, the body's largest extent
         self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
         self.rest_tip_height = float(mesh.vertices[self.tip, 2].mean())
         self.reference = None       # the trajectory ghost's simulation, built on first use
@@ -80,15 +106,63 @@ class PanelSim:
         self.error_converged = True
         self.iteration = 0
         self.in_step = False
+        self.failure = None         # why this panel stopped (it diverged), or None while it runs
+
+    @property
+    def settings(self):
+        """The ``PanelSettings`` this panel simulates now."""
+        sim = self.sim
+        return PanelSettings(youngs_modulus=sim.material.youngs_modulus, iterations=sim.iterations, dt=sim.dt,
+                             chebyshev_rho=sim.chebyshev_rho or 0.0)
+
+    @property
+    def label(self):
+        """The scene's label while the panel runs the scene's settings, else a description of its settings."""
+        settings = self.settings
+        return self.panel.label if settings == self.scene_settings else f"changed: {settings.describe()}"
+
+    def apply(self, settings):
+        """Simulate with ``settings`` from the current state on: the one place a panel's settings change.
+
+        An open iteration-by-iteration step is closed first. Switching Chebyshev on or off builds a new
+        ``Simulation`` (it allocates the acceleration's state only when built with it) and carries the
+        positions, velocities and clock over; everything else is assigned to the running simulation.
+        """
+        if settings == self.settings:
+            return
+        self.finish_step()
+        material = dataclasses.replace(self.sim.material, youngs_modulus=settings.youngs_modulus)
+        rho = settings.chebyshev_rho or None
+        self._settings.update(material=material, iterations=settings.iterations, dt=settings.dt, chebyshev_rho=rho)
+        if (rho is None) != (self.sim.chebyshev_rho is None):
+            self._rebuild()
+        else:
+            self.sim.chebyshev_rho = rho
+            self.sim.set_material(material)
+            self.sim.iterations = settings.iterations
+            self.sim.dt = settings.dt
+        self.reference = None       # the trajectory ghost restarts with the new settings on first use
+        self.reference_synced = False
+
+    def _rebuild(self):
+        old = self.sim
+        self.sim = solver.Simulation(**self._settings)
+        self.sim.set_positions(old.positions)
+        self.sim.set_velocities(old.velocities)
+        self.sim.time, self.sim.frame = old.time, old.frame
 
     def step(self):
         """One full time step, measured against the Newton solution of the same step when enabled."""
+        if self.failure is not None:
+            return
         self.finish_step()
         self.start = self.sim.positions
         problem = self.sim.step_problem() if self.ghost_enabled else None
         if self.ghost_enabled and self.ghost_mode == GhostMode.TRAJECTORY and not self._shares_reference_next():
             self._sync_reference()
-        self.sim.step()
+        if not self._guarded(self.sim.step):
+            self.ghost, self.error = None, None
+            return
         self.iteration = self.sim.iterations
         if problem is None:
             self.ghost, self.error = None, None
@@ -105,6 +179,23 @@ class PanelSim:
         else:
             self.ghost = self._advance_reference()
 
+    def _guarded(self, advance):
+        """Run ``advance()``; a diverging body stops this panel with a message (``failure``, shown in its
+        label) instead of ending the program. Returns True while the panel runs."""
+        try:
+            advance()
+        except solver.VBDError as e:
+            self.failure = f"stopped: {e}"
+        else:
+            x = self.sim.positions
+            moved = float(np.abs(x - self.rest).max()) if np.isfinite(x).all() else np.inf
+            if not moved <= DIVERGED_BODY_SIZES * self.size:
+                self.failure = f"diverged at t = {self.sim.time:.2f} s (a vertex {moved:.0e} m from rest)"
+        if self.failure is not None:
+            fix = "lower Chebyshev rho" if self.sim.chebyshev_rho else "add iterations or lower dt"
+            self.failure += f"; {fix}, then reset"
+        return self.failure is None
+
     def _shares_reference_next(self):
         src = self.reference_source
         return src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
@@ -114,7 +205,8 @@ class PanelSim:
         converged trajectory this frame (the iteration budget does not change a converged solve)."""
         src = self.reference_source
         return (src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
-                and src.ghost is not None and src.sim.frame == self.sim.frame and src.sim.dt == self.sim.dt)
+                and src.ghost is not None and src.sim.frame == self.sim.frame and src.sim.dt == self.sim.dt
+                and src.sim.material == self.sim.material)
 
     def _sync_reference(self):
         """Start the reference trajectory from the current state (first use, or after a reset)."""
@@ -142,6 +234,8 @@ class PanelSim:
 
     def iterate(self, count=1):
         """``count`` more iterations of the current time step (opening one if needed)."""
+        if self.failure is not None:
+            return
         if not self.in_step:
             self.start = self.sim.positions
             self.ghost = None
@@ -153,7 +247,9 @@ class PanelSim:
             self.iteration = 0
             self.in_step = True
         if count:
-            self.sim.run_iterations(count)
+            if not self._guarded(lambda: self.sim.run_iterations(count)):
+                self.error = None
+                return
             self.iteration += count
         self._measure()
 
@@ -170,10 +266,20 @@ class PanelSim:
         if self.ghost is not None:
             self.error = solver.relative_error(self.sim.positions, self.ghost, self.start)
 
+    def drift(self):
+        """How far (m) the centre of mass has moved across gravity since the start."""
+        masses = self.sim.masses / self.sim.masses.sum()
+        moved = masses @ (self.sim.positions - self.rest)
+        g = np.asarray(self.scene.gravity, float)
+        if g.any():
+            g = g / np.linalg.norm(g)
+            moved = moved - (moved @ g) * g
+        return float(np.linalg.norm(moved))
+
     def state(self):
         x = self.sim.positions
         by, lo_hi = self.scene.colour_by, self.scene.colour_range
-        lines = [self.panel.label]
+        lines = [self.label]
         if by is ColourBy.DISPLACEMENT:
             rgb = colours.sequential(colours.normalise(np.linalg.norm(x - self.start, axis=1), *lo_hi, log=True))
         elif by is ColourBy.RESIDUAL:
@@ -186,7 +292,7 @@ class PanelSim:
         if self.scene.advance is Advance.ITERATIONS:
             lines.append(f"iteration {self.iteration}")
         elif by is not ColourBy.COLOUR_SETS:
-            lines.append(f"{self.panel.iterations} iterations, dt = {_fraction(self.scene.dt)} s, t = {self.sim.time:.2f} s")
+            lines.append(f"{self.sim.iterations} iterations, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
         if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
             tip = self.tip
             drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
@@ -194,6 +300,12 @@ class PanelSim:
         if self.error is not None:
             unsure = "" if self.error_converged else " (Newton not converged: approximate)"
             lines.append(f"relative error {self.error:.3f}{unsure}")
+        if self.panel.show_drift:
+            drift = self.drift()
+            if drift >= DRIFT_SHOWN:
+                lines.append(f"drifted {100 * drift:.0f} cm sideways: the unconverged steps do not conserve momentum")
+        if self.failure is not None:
+            lines.append(self.failure)
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error)
 
 

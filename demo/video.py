@@ -26,9 +26,11 @@ class VideoWriter:
 
     def __enter__(self):
         if self.format is VideoFormat.MP4:
-            # yuv420p plays everywhere; macro_block_size=2 keeps the exact (even) frame size
+            # yuv420p plays everywhere; macro_block_size=2 keeps the exact (even) frame size; ffmpeg's
+            # warnings (e.g. "not enough frames to estimate rate" for short videos) are not the user's business
             self._writer = imageio.get_writer(self.path, format="FFMPEG", mode="I", fps=self.fps, codec="libx264",
-                                              pixelformat="yuv420p", quality=8, macro_block_size=2)
+                                              pixelformat="yuv420p", quality=8, macro_block_size=2,
+                                              ffmpeg_log_level="error")
         elif self.format is VideoFormat.GIF:
             self._writer = iio.imopen(self.path, "w", plugin="pillow")
         return self

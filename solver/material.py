@@ -22,8 +22,8 @@ from .errors import ConfigError
 class Material:
     """Homogeneous elastic material.
 
-    youngs_modulus: E in Pa (> 0). poisson_ratio: nu, dimensionless, in [0, 0.5).
-    density: rho in kg/m^3 (> 0).
+    youngs_modulus: E in Pa (> 0). poisson_ratio: nu, dimensionless, in (-1, 0.5); negative for
+    auxetic materials, which widen when stretched. density: rho in kg/m^3 (> 0).
     """
 
     youngs_modulus: float
@@ -37,9 +37,9 @@ class Material:
                 raise ConfigError(f"{name} must be a finite number, got {value!r}")
         if self.youngs_modulus <= 0:
             raise ConfigError(f"youngs_modulus must be > 0 Pa, got {self.youngs_modulus}")
-        if not 0.0 <= self.poisson_ratio < 0.5:
-            raise ConfigError(f"poisson_ratio must be in [0, 0.5), got {self.poisson_ratio}; "
-                              "0.5 is incompressible and not supported")
+        if not -1.0 < self.poisson_ratio < 0.5:
+            raise ConfigError(f"poisson_ratio must be in (-1, 0.5), got {self.poisson_ratio}; -1 has no shear "
+                              "stiffness left and 0.5 is incompressible, neither is supported")
         if self.density <= 0:
             raise ConfigError(f"density must be > 0 kg/m^3, got {self.density}")
 

@@ -255,5 +255,12 @@ def save_mesh(mesh, path, point_data: dict | None = None) -> None:
         cells = [("triangle", boundary_faces(tets))]
     else:
         cells = [("tetra", np.asarray(tets))]
-    meshio.write(path, meshio.Mesh(np.asarray(vertices, dtype=np.float64), cells,
-                                   point_data=point_data or {}))
+    try:
+        meshio.write(path, meshio.Mesh(np.asarray(vertices, dtype=np.float64), cells,
+                                       point_data=point_data or {}))
+    except OSError as err:
+        raise MeshError(f"{path}: cannot write ({err.strerror}); check that the folder exists and is "
+                        "writable") from None
+    except (meshio.ReadError, meshio.WriteError) as err:   # meshio reports an unknown suffix as ReadError
+        raise MeshError(f"{path}: cannot write this format ({err}); use a suffix meshio writes, "
+                        "e.g. .vtu, .msh, .ply or .obj") from None

@@ -1,11 +1,24 @@
 """Error measures against the converged Newton solution x* of the same step."""
 import numpy as np
 
+from .errors import ConfigError
+
 
 def relative_error(x: np.ndarray, x_star: np.ndarray, x_n: np.ndarray) -> float:
-    """||x - x*|| / ||x* - x_n|| over all (N, 3) coordinates: 0 is exact, 1 is "did not move"."""
-    denom = np.linalg.norm(x_star - x_n)
-    return float(np.linalg.norm(x - x_star) / denom) if denom > 0 else float(np.linalg.norm(x - x_star))
+    """||x - x*|| / ||x* - x_n|| over all (N, 3) coordinates: 0 is exact, 1 is "did not move".
+
+    A step that does not move (x* = x_n exactly) has no scale to measure against: the error is then
+    0 where x = x* and infinite otherwise, never an absolute distance in metres.
+    """
+    x, x_star, x_n = (np.asarray(a, dtype=float) for a in (x, x_star, x_n))
+    if not x.shape == x_star.shape == x_n.shape:
+        raise ConfigError(f"relative_error needs x, x* and x_n of one shape, got {x.shape}, {x_star.shape} and "
+                          f"{x_n.shape}; pass positions of the same mesh")
+    distance = np.linalg.norm(x - x_star)
+    step = np.linalg.norm(x_star - x_n)
+    if step == 0:
+        return 0.0 if distance == 0 else float("inf")
+    return float(distance / step)
 
 
 def relative_energy_gap(G_x: float, G_star: float, G_n: float) -> float:

@@ -164,3 +164,79 @@ def test_stress_cell_stays_finite_and_monotone(stress_runner, dt, E, nu, state):
 def test_stress_cell_recovers_rest_shape(stress_runner, state):
     out = stress_runner.cell(1 / 60, 1e4, 0.3, state)
     assert out["recovers"], out
+
+
+# ---------------------------------------------------------------------------------------------
+# Output folders and arguments: quick runs never touch the committed results, nothing is replaced
+# without --overwrite, bad values end in one line. Only argument handling runs here, no benchmark.
+# ---------------------------------------------------------------------------------------------
+SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed")
+
+
+def _module(name):
+    import importlib
+
+    return importlib.import_module(f"benchmarks.{name}")
+
+
+def _exits_with_one_line(capsys, run, match):
+    with pytest.raises(SystemExit) as e:
+        run()
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("error: ") and match in err, err
+
+
+def test_quick_runs_write_into_a_new_scratch_folder_full_runs_into_the_results(tmp_path):
+    import tempfile
+
+    from benchmarks.common import output_folder, parser
+
+    results = tmp_path / "results"
+    p = parser("test", str(results))
+    quick = [output_folder(p.parse_args(["--quick"]), ["a.csv"]) for _ in range(2)]
+    assert quick[0] != quick[1] and all(os.path.dirname(q) == tempfile.gettempdir() for q in quick)
+    assert not results.exists()
+    assert output_folder(p.parse_args([]), ["a.csv"]) == str(results) and results.is_dir()
+    for q in quick:
+        os.rmdir(q)
+
+
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_no_benchmark_replaces_results_without_overwrite(tmp_path, capsys, name):
+    module = _module(name)
+    first = tmp_path / module.OUTPUTS[0]
+    first.write_text("committed")
+    _exits_with_one_line(capsys, lambda: module.main(["--quick", "--out", str(tmp_path)]),
+                         "already exist; pass --overwrite")
+    assert first.read_text() == "committed"
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["--out", ""], "--out is empty"),
+    (["--out", "/proc/x"], "cannot create output folder /proc/x"),
+])
+@pytest.mark.parametrize("name", SCRIPTS)
+def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match):
+    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+@pytest.mark.parametrize("name, argv, match", [
+    ("pareto", ["--budget", "-1"], "--budget: expected a positive number, got '-1'"),
+    ("pareto", ["--rhos", "1.5"], "between 0 and 1"),
+    ("throughput", ["--min-seconds", "0"], "expected a positive number"),
+    ("stability", ["--steps", "x"], "expected a positive whole number"),
+    ("skip", ["--min-seconds", "nan"], "expected a positive number"),
+    ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
+    ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
+])
+def test_bad_benchmark_arguments_give_one_line_errors(capsys, name, argv, match):
+    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+def test_render_speed_quick(tmp_path, capsys):
+    _module("render_speed").main(["--quick", "--out", str(tmp_path)])
+    data = rows(tmp_path / "render_speed.csv")
+    assert len(data) == 3 and all(float(r["render_ms"]) > 0 for r in data)
+    assert (tmp_path / "render_speed_frame.png").stat().st_size > 0
+    assert "[Taichi]" not in capsys.readouterr().out

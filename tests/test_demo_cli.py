@@ -1,10 +1,12 @@
 """The command line: outputs, video, overwrite protection, one-line errors."""
+import os
 import subprocess
 import sys
 import types
 from pathlib import Path
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 
 from demo.__main__ import main
@@ -87,3 +89,63 @@ def test_help_and_list_in_a_fresh_process():
     assert helped.returncode == 0 and "(default: 1280x720)" in " ".join(helped.stdout.split())
     listed = run("list")
     assert listed.returncode == 0 and any(line.startswith("stiffness_sweep ") for line in listed.stdout.splitlines())
+
+
+def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tmp_path):
+    """A clean first run (no kernel cache) compiles without Taichi precision warnings; stdout carries
+    only what was asked for."""
+    env = {**os.environ, "TI_OFFLINE_CACHE": "0"}
+    run = lambda *a: subprocess.run([sys.executable, "-m", "demo", *a], cwd=REPO, capture_output=True, text=True,
+                                    env=env, timeout=300)
+    helped = run("render", "--help")
+    assert "[Taichi]" not in helped.stdout
+    options = " ".join(helped.stdout.split()).split(" --")
+    assert all(option.count("(default") <= 1 for option in options), helped.stdout
+    assert "(default: None)" not in helped.stdout
+    assert "[Taichi]" not in run("list").stdout
+    rendered = run("render", "colouring", "--size", "64x48", "--video", "none", "--out", str(tmp_path / "c"))
+    assert rendered.returncode == 0, rendered.stderr
+    assert "precision" not in rendered.stdout + rendered.stderr, rendered.stderr
+    assert "[Taichi] version" not in rendered.stdout
+
+
+def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path, capsys):
+    out = tmp_path / "t"
+    argv = ["render", "twist", "--size", "48x32", "--video", "none", "--export", "obj", "--out", str(out)]
+    assert main(argv + ["--frames", "3"]) == 0
+    mine = [out / "frame_12.png", out / "notes.txt", out / "meshes" / "frame_0002_panel0.obj.bak"]
+    for f in mine:
+        f.write_text("mine")
+    assert main(argv + ["--frames", "1", "--overwrite"]) == 0
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_12.png"]
+    assert sorted(p.name for p in (out / "meshes").iterdir()) == ["frame_0000_panel0.obj", "frame_0002_panel0.obj.bak"]
+    assert all(f.read_text() == "mine" for f in mine)
+
+
+def test_empty_out_is_refused(capsys):
+    one_line_error(capsys, ["render", "colouring", "--out", ""], "empty --out would write into the current folder")
+
+
+@pytest.mark.parametrize("argv, match", [
+    (["figures", "--size", "10"], "bad size '10'"),
+    (["figures", "--only", "excerpts", "--notes", "/nonexistent"], "no lecture-note chapters"),
+    (["figures", "--check", "--notes", "/nonexistent"], "no lecture-note chapters"),
+])
+def test_figures_bad_arguments_give_one_line_errors(capsys, argv, match):
+    one_line_error(capsys, argv, match)
+
+
+def test_ply_export_writes_32_bit_faces_without_warnings(tmp_path, capfd):
+    import meshio
+    import solver
+    from demo.export import ExportFormat, export_mesh
+
+    mesh = solver.box_mesh(size=(1.0, 0.2, 0.2), cells=(3, 1, 1))
+    faces = mesh.boundary_faces()
+    export_mesh(tmp_path / "m.ply", ExportFormat.PLY, mesh.vertices, mesh.tets, faces)
+    captured = capfd.readouterr()
+    assert "64-bit" not in captured.out + captured.err
+    back = meshio.read(tmp_path / "m.ply")
+    used = np.unique(faces)
+    np.testing.assert_allclose(back.points, mesh.vertices[used])
+    np.testing.assert_array_equal(used[back.cells[0].data], faces)

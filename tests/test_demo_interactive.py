@@ -1,9 +1,20 @@
-"""The GGUI window, driven off screen (show_window=False) where Vulkan exists."""
+"""The GGUI window, driven off screen (show_window=False) where Vulkan exists; the panel logic it
+drives (per-panel settings, divergence) runs without Vulkan."""
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+import solver
 from demo import scenes
 from demo.errors import DemoError
+from demo.runner import PanelSettings, PanelSim
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -46,6 +57,7 @@ def test_controls(app):
     assert all(p.sim.frame == 0 for p in app.panels)
     app.single_iteration()
     assert all(p.iteration == 1 for p in app.panels)
+    app.select_panel(None)
     app.set_youngs_modulus(5.0)
     assert all(p.sim.material.youngs_modulus == pytest.approx(1e5) for p in app.panels)
     app.set_iterations(7)
@@ -62,3 +74,143 @@ def test_controls(app):
     app.load("twist")
     app.run(max_frames=app.frames_drawn + 1)
     assert app.scene.name == "twist"
+
+
+def test_every_panel_keeps_its_own_settings_and_label(app):
+    """Switching Chebyshev on used to rebuild every panel with the first panel's E and iterations."""
+    app.load("iteration_sweep")
+    scene_labels = [p.label for p in scenes.get("iteration_sweep").panels]
+    assert [p.label for p in app.panels] == scene_labels
+    app.select_panel(None)
+    app.set_chebyshev_rho(0.5)
+    assert [p.sim.iterations for p in app.panels] == [5, 20, 100]
+    assert all(p.sim.material.youngs_modulus == 1e6 and p.sim.chebyshev_rho == 0.5 for p in app.panels)
+    assert [p.label for p in app.panels] == [f"changed: E = 1e6 Pa, {n} it., dt = 1/60 s, Chebyshev rho 0.5"
+                                              for n in (5, 20, 100)]
+    app.select_panel(1)
+    app.set_iterations(40)
+    app.set_youngs_modulus(5.0)
+    assert [p.sim.iterations for p in app.panels] == [5, 40, 100]
+    assert [p.sim.material.youngs_modulus for p in app.panels] == pytest.approx([1e6, 1e5, 1e6])
+    assert "E = 1e5 Pa, 40 it." in app.panel_lines(1)[0]
+    app.select_panel(None)
+    app.set_chebyshev_rho(0.0)
+    assert all(p.sim.chebyshev_rho is None for p in app.panels)
+    assert app.panels[0].label == scene_labels[0] and app.panels[2].label == scene_labels[2]
+    with pytest.raises(DemoError, match="panel 3 does not exist"):
+        app.select_panel(3)
+
+
+def test_status_lines_fit_the_controls(app):
+    app.load("stiffness_sweep")
+    app.panels[1].apply(dataclasses.replace(app.panels[1].settings, chebyshev_rho=0.75, dt=1 / 120))
+    lines = app.panel_lines(1, width=30)
+    assert all(len(line) <= 30 for line in lines)
+    assert "dt = 1/120 s" in lines[1]           # broken after a comma, not inside "dt = 1/120 s"
+    assert " ".join(lines).split() == f"panel 2: {app.panels[1].label}, t = 0.00 s".split()
+
+
+def test_a_diverging_panel_stops_with_a_message_in_the_window(app):
+    app.load("stiffness_sweep")
+    app.select_panel(0)
+    app.set_chebyshev_rho(0.999)            # above the slider's cap: the iteration grows without bound
+    app.playing = True
+    for _ in range(60):
+        app.run(max_frames=app.frames_drawn + 1)
+        if app.panels[0].failure:
+            break
+    assert "diverged" in app.panels[0].failure and "lower Chebyshev rho" in app.panels[0].failure
+    assert app.panels[0].failure in " ".join(" ".join(app.panel_lines(0, 200)).split())
+    stopped_at = app.panels[0].sim.frame
+    app.run(max_frames=app.frames_drawn + 1)
+    assert app.panels[0].sim.frame == stopped_at and app.panels[1].sim.frame == stopped_at + 1
+    assert app.panels[1].failure is None
+    app.set_chebyshev_rho(0.0)
+    app.reset()
+    assert app.panels[0].failure is None
+
+
+def test_vertex_normals_point_out_of_a_box():
+    from demo.interactive import vertex_normals
+
+    mesh = solver.box_mesh(size=(1.0, 0.2, 0.1), cells=(5, 2, 1))
+    faces = mesh.boundary_faces()
+    n = vertex_normals(mesh.vertices, faces)
+    used = np.unique(faces)
+    np.testing.assert_allclose(np.linalg.norm(n[used], axis=1), 1.0)
+    assert np.all(np.einsum("ij,ij->i", n[used], mesh.vertices[used] - mesh.vertices.mean(axis=0)) > 0)
+    corner = np.argmin(mesh.vertices.sum(axis=1))           # (0, 0, 0): the normal points along -(1, 1, 1)
+    np.testing.assert_allclose(n[corner], -np.ones(3) / np.sqrt(3), atol=0.2)
+
+
+@pytest.mark.parametrize("display, match", [(None, "DISPLAY is not set"), (":987", "DISPLAY=:987 has no X server")])
+def test_no_display_gives_a_hint_instead_of_ending_the_process(monkeypatch, display, match):
+    from demo.interactive import check_display
+
+    monkeypatch.setattr(sys, "platform", "linux")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if display is None:
+        monkeypatch.delenv("DISPLAY", raising=False)
+    else:
+        monkeypatch.setenv("DISPLAY", display)
+    with pytest.raises(DemoError, match=match) as e:
+        check_display()
+    assert "xvfb-run" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_window_start_compiles_without_precision_warnings(app):
+    """GGUI's default normals and RGB colours compile float64 literals into float32 fields."""
+    code = ("from demo.interactive import InteractiveApp\n"
+            "app = InteractiveApp('stiffness_sweep', size=(160, 90), show_window=False)\n"
+            "app.set_ghost(True); app.toggle_play(); app.run(max_frames=2)\n"
+            "app.set_colour_by(app.colour_by.__class__.RESIDUAL); app.run(max_frames=3)\n")
+    run = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "TI_OFFLINE_CACHE": "0"})
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "precision" not in run.stdout + run.stderr
+
+
+def _bar_panel(rho, iterations=20):
+    scene = scenes.get("stiffness_sweep")
+    return PanelSim(scene, dataclasses.replace(scene.panels[1], chebyshev_rho=rho, iterations=iterations,
+                                               newton_ghost=False))
+
+
+def test_panel_settings_apply_and_describe():
+    p = _bar_panel(None)
+    assert p.settings == PanelSettings(1e6, 20, 1 / 60, 0.0) and p.label == "E = 1e6 Pa (stiff)"
+    p.step()
+    p.apply(PanelSettings(2.5e5, 7, 1 / 120, 0.6))        # Chebyshev switched on: the motion carries over
+    assert p.sim.frame == 1 and p.sim.chebyshev_rho == 0.6 and p.sim.iterations == 7
+    assert p.sim.material.youngs_modulus == 2.5e5 and p.sim.dt == 1 / 120
+    assert p.label == "changed: E = 2.5e5 Pa, 7 it., dt = 1/120 s, Chebyshev rho 0.6"
+    moved = p.sim.positions
+    p.apply(PanelSettings(1e6, 20, 1 / 60, 0.0))
+    np.testing.assert_array_equal(p.sim.positions, moved)
+    assert p.label == "E = 1e6 Pa (stiff)" and p.sim.chebyshev_rho is None
+
+
+def test_the_chebyshev_cap_is_stable_where_rho_near_one_diverges():
+    """The 0.5 m stiff bar: at the window's cap it sags like the plain solve; at 0.999 it flies off."""
+    scene = scenes.get("stiffness_sweep")
+    capped, over = _bar_panel(scene.max_chebyshev_rho, iterations=5), _bar_panel(0.999, iterations=5)
+    for _ in range(30):
+        capped.step()
+        over.step()
+    assert capped.failure is None and np.abs(capped.sim.positions - capped.rest).max() < 1.5
+    assert over.failure is not None and "diverged" in over.failure
+    frame = over.sim.frame
+    over.step()
+    assert over.sim.frame == frame          # a stopped panel stays stopped until reset
+    assert over.failure in over.state().lines
+
+
+def test_drop_scene_labels_its_sideways_drift():
+    scene = scenes.get("drop")
+    assert any("drift" in note for note in scene.notes)
+    p = PanelSim(scene, scene.panels[0])
+    assert p.drift() == 0.0 and not any("drifted" in line for line in p.state().lines)
+    x = p.sim.positions
+    p.sim.set_positions(x + (0.03, 0.04, -0.2))             # 5 cm sideways, 20 cm down
+    assert p.drift() == pytest.approx(0.05)
+    assert any(line.startswith("drifted 5 cm sideways") for line in p.state().lines)

@@ -143,3 +143,14 @@ def test_signed_volume_helper():
     X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]])
     assert signed_volumes(X, np.array([[0, 1, 2, 3]]))[0] == pytest.approx(1 / 6)
     assert signed_volumes(X, np.array([[0, 2, 1, 3]]))[0] == pytest.approx(-1 / 6)
+
+
+@pytest.mark.parametrize("name, match", [
+    ("missing-folder/box.vtu", "cannot write .*check that the folder exists"),
+    ("box.xyz", "cannot write this format .*use a suffix meshio writes"),
+])
+def test_save_mesh_errors_are_mesh_errors(tmp_path, name, match):
+    mesh = solver.box_mesh(size=(1.0, 1.0, 1.0), cells=(1, 1, 1))
+    with pytest.raises(solver.MeshError, match=match):
+        solver.save_mesh(mesh, tmp_path / name)
+    assert list(tmp_path.iterdir()) == []
