@@ -197,11 +197,43 @@ class PanelSim:
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error)
 
 
+class RestPanel:
+    """A panel of an ``Advance.REST`` scene: the body at rest, coloured by its colour sets.
+
+    Builds no ``solver.Simulation``, only the mesh and its colouring, so that a homework starter can
+    draw its colouring before the solver tasks are done.
+    """
+
+    def __init__(self, scene, panel):
+        self.scene, self.panel = scene, panel
+        mesh = panel.mesh.build()
+        self.faces = np.ascontiguousarray(mesh.boundary_faces(), dtype=np.int32)
+        self.tets = np.asarray(mesh.tets)
+        self.start = np.asarray(mesh.vertices, dtype=np.float64)
+        coloring = solver.color_vertices(mesh.tets, mesh.n_vertices, key=mesh.topology_key())
+        pinned = _mask(panel.fixed, mesh.vertices) | _mask(panel.kinematic, mesh.vertices)
+        self.colors = np.where(pinned, -1, coloring.colors).astype(np.int32)
+        self.n_colors = len(np.unique(self.colors[self.colors >= 0]))
+
+    def state(self):
+        if self.scene.colour_by is ColourBy.COLOUR_SETS:
+            rgb = colours.categorical(self.colors)
+            lines = [self.panel.label, f"{self.n_colors} colours for {len(self.start)} vertices"]
+        else:
+            rgb, lines = colours.uniform(len(self.start)), [self.panel.label]
+        return PanelState(self.start, self.faces, rgb, None, lines, None)
+
+
 class SceneRunner:
     """All panels of a scene; ``advance()`` produces the next frame's panel states."""
 
     def __init__(self, scene, arch="cpu"):
         self.scene = scene
+        if scene.advance is Advance.REST:
+            solver.ensure_taichi(arch)
+            self.panels = [RestPanel(scene, panel) for panel in scene.panels]
+            self.frame = 0
+            return
         self.panels = [PanelSim(scene, panel, arch) for panel in scene.panels]
         for i, p in enumerate(self.panels):
             for q in self.panels[:i]:
@@ -214,7 +246,7 @@ class SceneRunner:
         for p in self.panels:
             if self.scene.advance is Advance.ITERATIONS:
                 p.iterate(1 if self.frame > 0 else 0)
-            else:
+            elif self.scene.advance is Advance.TIME_STEPS:
                 p.step()
         self.frame += 1
         return [p.state() for p in self.panels]

@@ -37,6 +37,7 @@ class Advance(enum.Enum):
 
     TIME_STEPS = "time steps"    # one full time step per frame
     ITERATIONS = "iterations"    # one solver iteration of a single time step per frame
+    REST = "rest"                # nothing moves: the rest shape (needs only the mesh and its colouring)
 
 
 class Side(enum.Enum):
@@ -235,6 +236,7 @@ SCENES = {scene.name: scene for scene in [
         panels=(Panel(label="bar 40x4x4 cells", material=_material(1e6), fixed=PINNED_LEFT),),
         camera=Camera(eye=(0.3, -0.9, 0.45), target=(0.5, 0.0, 0.0), fov_degrees=40.0),
         grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=1, fps=1, colour_by=ColourBy.COLOUR_SETS,
+        advance=Advance.REST,
     ),
     Scene(
         name="drop",

@@ -39,7 +39,7 @@ def test_every_scene_builds_and_steps(name):
     runner = SceneRunner(scenes.get(name))
     for p in runner.panels:
         p.ghost_enabled = False     # Newton references are tested once below; they are the slow part
-    rest = [p.sim.positions for p in runner.panels]
+    rest = [p.start.copy() for p in runner.panels]
     for _ in range(2):
         states = runner.advance()
     assert len(states) == len(scenes.get(name).panels)
@@ -137,3 +137,27 @@ def test_ghost_switched_back_on_restarts_from_the_body():
     assert stiff.reference.frame == stiff.sim.frame == 3
     # the ghost started this step from x_n: it moved by about one step, not three
     assert np.abs(state.ghost - x_n).max() < 0.05
+
+
+def test_colouring_scene_needs_only_the_colouring():
+    """The colouring picture builds no Simulation (a homework starter draws it once task 2 alone is done),
+    and shows exactly the colour sets a Simulation of the same panel would solve."""
+    import solver
+    from demo.colours import FIXED_COLOUR
+    from demo.runner import RestPanel, _mask
+
+    scene = scenes.get("colouring")
+    assert scene.advance is scenes.Advance.REST
+    runner = SceneRunner(scene)
+    (panel,) = runner.panels
+    assert isinstance(panel, RestPanel) and not hasattr(panel, "sim")
+    (state,) = runner.advance()
+    spec = scene.panels[0]
+    mesh = spec.mesh.build()
+    np.testing.assert_array_equal(state.positions, mesh.vertices)
+    sim = solver.Simulation(mesh, spec.material, fixed=_mask(spec.fixed, mesh.vertices), gravity=scene.gravity)
+    np.testing.assert_array_equal(panel.colors, sim.colors)
+    assert state.lines[1] == f"{sim.n_colors} colours for {mesh.n_vertices} vertices"
+    pinned = sim.colors < 0
+    assert pinned.any()
+    np.testing.assert_array_equal(state.colours[pinned], np.tile(FIXED_COLOUR, (pinned.sum(), 1)))
