@@ -158,7 +158,8 @@ def render(args):
     except OSError as e:
         raise DemoError(f"cannot write into {out}: {e.strerror or e}") from None
     elapsed = time.perf_counter() - started
-    print(f"wrote {frames} frames to {out}/frame_0000.png ... frame_{frames - 1:04d}.png in {elapsed:.1f} s")
+    shown = "frame_0000.png" if frames == 1 else f"frame_0000.png ... frame_{frames - 1:04d}.png"
+    print(f"wrote {frames} frame{'s' if frames != 1 else ''} to {out}/{shown} in {elapsed:.1f} s")
     if video_format is not VideoFormat.NONE:
         print(f"video: {files[frames]} ({fps} fps, {width}x{height})")
     if export_format is not ExportFormat.NONE:
