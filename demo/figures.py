@@ -58,8 +58,13 @@ CHECKPOINTS = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 7
 # ---------------------------------------------------------------------------------------------
 # Notes: generated blocks and code excerpts
 # ---------------------------------------------------------------------------------------------
+SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
+
+
 def function_source(path: Path, name: str) -> str:
-    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators included."""
+    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators
+    included, without the homework's solution markers (a region that ends the function would otherwise
+    be quoted without its END line)."""
     text = path.read_text(encoding="utf-8")
     node = ast.parse(text)
     for part in name.split("."):
@@ -69,7 +74,7 @@ def function_source(path: Path, name: str) -> str:
             raise KeyError(f"{name} not found in {path}")
         node = matches[0]
     first = min([node.lineno] + [d.lineno for d in node.decorator_list])
-    lines = text.splitlines()[first - 1:node.end_lineno]
+    lines = [line for line in text.splitlines()[first - 1:node.end_lineno] if not SOLUTION_MARKER.match(line)]
     return textwrap.dedent("\n".join(lines)).rstrip()
 
 

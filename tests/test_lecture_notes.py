@@ -167,3 +167,9 @@ def test_check_command_fails_on_stale_figures(tmp_path, capsys):
     (notes / "figures" / figures.MANIFEST).write_text(json.dumps(manifest))
     assert figures.main(["--check", "--out", str(notes / "figures"), "--notes", str(notes)]) == 1
     assert "section sweeps:" in capsys.readouterr().out
+
+
+def test_excerpts_show_no_solution_markers():
+    for path in figures.chapters():
+        for match in figures.EXCERPT.finditer(path.read_text()):
+            assert "SOLUTION" not in match["body"], f"{path.name}: {match['name']}"
