@@ -31,6 +31,7 @@ class PanelState:
     ghost: np.ndarray       # reference positions, or None
     lines: list             # label lines
     error: float            # relative error of this step against its Newton solution x*, or None
+    trajectory_gap: float = None    # m: max_i |x_i - ghost_i| against the converged trajectory, or None
 
 
 class PanelSim:
@@ -64,6 +65,7 @@ class PanelSim:
             kinematic_motion=panel.motion if kinematic.any() else None, arch=arch)
         self.sim = solver.Simulation(**self._settings)
         self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
+        self.length = float(np.ptp(mesh.vertices, axis=0).max())               # m, the body's longest side
         self.rest_tip_height = float(mesh.vertices[self.tip, 2].mean())
         self.reference = None       # the trajectory ghost's simulation, built on first use
         self.reference_source = None    # an earlier panel whose trajectory ghost is this one's too
@@ -187,14 +189,18 @@ class PanelSim:
             lines.append(f"iteration {self.iteration}")
         elif by is not ColourBy.COLOUR_SETS:
             lines.append(f"{self.panel.iterations} iterations, dt = {_fraction(self.scene.dt)} s, t = {self.sim.time:.2f} s")
+        gap = None
         if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
             tip = self.tip
             drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
-            lines.append(f"tip drop {100 * drop(x):.0f} cm (ghost {100 * drop(self.ghost):.0f} cm)")
+            lines.append(f"tip drop {_cm(drop(x))} cm (ghost {_cm(drop(self.ghost))} cm)")
+            # the error that has built up over all steps so far: what the audience sees
+            gap = float(np.linalg.norm(x - self.ghost, axis=1).max())
+            lines.append(f"off the ghost by {_cm(gap)} cm = {gap / self.length:.0%} of its length")
         if self.error is not None:
             unsure = "" if self.error_converged else " (Newton not converged: approximate)"
             lines.append(f"relative error {self.error:.3f}{unsure}")
-        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error)
+        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap)
 
 
 class RestPanel:
@@ -275,6 +281,12 @@ def _mask(selectors, vertices):
     for selector in selectors:
         mask |= selector.select(vertices)
     return mask
+
+
+def _cm(metres):
+    """Whole centimetres, never "-0"."""
+    text = f"{100 * metres:.0f}"
+    return "0" if text == "-0" else text
 
 
 def _fraction(dt):
