@@ -46,6 +46,16 @@ def _positive(text):
     return value
 
 
+def _seconds(text):
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not (0.0 < value <= 3600.0):
+        raise argparse.ArgumentTypeError(f"expected a duration in seconds between 0 and 3600, got {text!r}")
+    return value
+
+
 def build_parser():
     from . import scenes
     from .export import ExportFormat
@@ -65,6 +75,8 @@ def build_parser():
     render.add_argument("--out", type=Path, default=None, help="output folder (default: out/SCENE)")
     render.add_argument("--size", type=_size, default="1280x720", metavar="WxH", help="image size in pixels")
     render.add_argument("--fps", type=_positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--duration", type=_seconds, default=None, metavar="SECONDS",
+                        help="video length: frames = SECONDS x fps, instead of --frames (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
                         help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
@@ -130,8 +142,10 @@ def render(args):
     from .video import VideoFormat, VideoWriter
 
     scene = scenes.get(args.scene)
-    frames = args.frames or scene.frames
     fps = args.fps or scene.fps
+    if args.frames and args.duration:
+        raise DemoError("pass --frames or --duration, not both")
+    frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
     out = args.out if args.out is not None else Path("out") / scene.name
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
