@@ -31,6 +31,7 @@ import ast
 import hashlib
 import io
 import json
+import os
 import re
 import sys
 import textwrap
@@ -330,8 +331,9 @@ def _pyplot():
     return plt
 
 
-def _render_scene(scene, frames_to_save, out, prefix, size):
-    """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel errors}.
+def _render_scene(scene, frames_to_save, out, prefix, size, measure=()):
+    """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel states}
+    of those and of the frames in `measure`.
 
     Every frame is simulated with its Newton ghost, so that a trajectory ghost has followed the
     converged solution all the way to the frames that are saved.
@@ -341,15 +343,16 @@ def _render_scene(scene, frames_to_save, out, prefix, size):
 
     runner = SceneRunner(scene)
     composer = None
-    wanted = sorted(frames_to_save)
-    errors = {}
+    wanted = sorted(set(frames_to_save) | set(measure))
+    saved = {}
     for frame in range(wanted[-1] + 1):
         states = runner.advance()
-        if frame in wanted:
+        if frame in frames_to_save:
             composer = composer or FrameComposer(scene, *size)
             _save_image(composer.compose(states), out / f"{prefix}_{frame:02d}.png")
-            errors[frame] = [s.error for s in states]
-    return errors
+        if frame in wanted:
+            saved[frame] = states
+    return saved
 
 
 # ---------------------------------------------------------------------------------------------
@@ -367,7 +370,7 @@ def section_colouring(out, full, size):
     meshes = [("bar 20x2x2 cells", solver.box_mesh(cells=(20, 2, 2), **BAR)),
               ("bar 40x4x4 cells", solver.box_mesh(cells=(40, 4, 4), **BAR)),
               ("bar 80x8x8 cells", solver.box_mesh(cells=(80, 8, 8), **BAR)),
-              ("sphere, voxelised (drop scene)", scenes.AssetMesh("assets/sphere.obj", resolution=10).build())]
+              ("sphere, voxelised (drop scene)", scenes.get("drop").panels[0].mesh.build())]
     rows, numbers = [], {}
     for label, mesh in meshes:
         row = [label, f"{mesh.n_vertices:,}", f"{mesh.n_tets:,}"]
@@ -386,6 +389,8 @@ def section_colouring(out, full, size):
 
 
 def section_sweeps(out, full, size):
+    import numpy as np
+
     from . import scenes
 
     numbers = {}
@@ -399,7 +404,13 @@ def section_sweeps(out, full, size):
                                            "dx = 2.5 cm", "dx = 1.25 cm"], rows)
     stiff = scenes.get("stiffness_sweep")
     frames = (1, 30)
-    errors = _render_scene(stiff, frames, out, "stiffness_sweep", size)
+    states = _render_scene(stiff, frames, out, "stiffness_sweep", size)
+    errors = {f: [s.error for s in states[f]] for f in frames}
+    # the soft bar stretches under gravity: the farthest vertex from the wall, against its rest distance
+    rest = stiff.panels[0].mesh.build().vertices
+    wall = rest[stiff.panels[0].fixed[0].select(rest)].mean(axis=0)
+    reach = lambda x: np.linalg.norm(x - wall, axis=1).max()
+    numbers["sweeps.stiffness.soft_stretch"] = f"{reach(states[30][0].positions) / reach(rest):.1f}"
     for frame in frames:
         for panel, error in zip(stiff.panels, errors[frame]):
             key = f"sweeps.stiffness.E{panel.material.youngs_modulus:.0e}.frame{frame}".replace("+0", "")
@@ -409,11 +420,22 @@ def section_sweeps(out, full, size):
         [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
 
     res = scenes.get("resolution_sweep")
-    errors = _render_scene(res, frames, out, "resolution_sweep", size)
+    states = _render_scene(res, frames, out, "resolution_sweep", size)
     numbers["sweeps.resolution.table"] = _table(
         ["frame (time)", *[f"{p.label}, E = {_E(p.material.youngs_modulus)} Pa, {p.iterations} it."
                            for p in res.panels]],
-        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
+        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{s.error:.3f}" for s in states[f]]] for f in frames])
+
+    # the iteration sweep: distance to the converged trajectory (the picture) beside the per-step error
+    sweep = scenes.get("iteration_sweep")
+    shown = (5, 20, 47)
+    states = _render_scene(sweep, (shown[-1],), out, "iteration_sweep", size, measure=shown)
+    length = float(np.ptp(sweep.panels[0].mesh.build().vertices, axis=0).max())
+    numbers["sweeps.iterations.table"] = _table(
+        ["frame (time)", *[f"{p.iterations} it.: off the ghost / step error" for p in sweep.panels]],
+        [[f"{f} (t = {(f + 1) * sweep.dt:.2f} s)",
+          *[f"{100 * s.trajectory_gap:.0f} cm = {s.trajectory_gap / length:.2f} lengths / {s.error:.2f}"
+            for s in states[f]]] for f in shown])
     return numbers
 
 
@@ -478,7 +500,10 @@ def section_convergence(out, full, size):
     _save_plot(fig, out / "time_vs_error.png")
     numbers["convergence.timing.table"] = _table(
         ["material", "VBD time per iteration", "VBD time to error 1e-2", "VBD time to error 1e-6",
-         "Newton iterations", "Newton time"], timing_rows)
+         "Newton iterations", "Newton time"], timing_rows) + (
+        f"\n\n*Measured by `python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
+        f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
+        "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
     return numbers
 
 
