@@ -19,7 +19,7 @@ import numpy as np  # noqa: E402
 
 import solver  # noqa: E402
 
-from .cli import HelpFormatter, Parser, folder, image_size, positive  # noqa: E402
+from .cli import HelpFormatter, Parser, folder, image_size, positive, seconds  # noqa: E402
 from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
@@ -48,6 +48,8 @@ def build_parser():
     render.add_argument("--out", type=folder, default=None, help="output folder (default: out/SCENE)")
     render.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="image size in pixels")
     render.add_argument("--fps", type=positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--duration", type=seconds, default=None, metavar="SECONDS",
+                        help="video length: frames = SECONDS x fps, instead of --frames (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
                         help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
@@ -123,8 +125,10 @@ def render(args):
     from .video import VideoFormat, VideoWriter
 
     scene = scenes.get(args.scene)
-    frames = args.frames or scene.frames
     fps = args.fps or scene.fps
+    if args.frames and args.duration:
+        raise DemoError("pass --frames or --duration, not both")
+    frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
     out = args.out if args.out is not None else Path("out") / scene.name
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
@@ -151,7 +155,8 @@ def render(args):
     except OSError as e:
         raise DemoError(f"cannot write into {out}: {e.strerror or e}") from None
     elapsed = time.perf_counter() - started
-    print(f"wrote {frames} frames to {out}/frame_0000.png ... frame_{frames - 1:04d}.png in {elapsed:.1f} s")
+    shown = "frame_0000.png" if frames == 1 else f"frame_0000.png ... frame_{frames - 1:04d}.png"
+    print(f"wrote {frames} frame{'s' if frames != 1 else ''} to {out}/{shown} in {elapsed:.1f} s")
     if video_format is not VideoFormat.NONE:
         print(f"video: {files[frames]} ({fps} fps, {width}x{height})")
     if export_format is not ExportFormat.NONE:

@@ -50,3 +50,14 @@ def positive(text):
     if value < 1:
         raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}")
     return value
+
+
+def seconds(text):
+    """A duration in seconds, more than 0 and at most an hour."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = 0.0
+    if not (0.0 < value <= 3600.0):
+        raise argparse.ArgumentTypeError(f"expected a duration in seconds between 0 and 3600, got {text!r}")
+    return value

@@ -45,12 +45,28 @@ class FrameComposer:
         for state, vp in zip(states, self.viewports):
             if vp.x > 0:
                 draw.line([vp.x, vp.y, vp.x, vp.y + vp.height], fill=(150, 150, 160), width=1)
-            for i, line in enumerate(state.lines):
+            row = 0
+            for line in state.lines:
                 colour = ERROR_TEXT if line.startswith("relative error") else TEXT
-                draw.text((vp.x + s // 2, vp.y + s // 2 + int(1.3 * s * i)), line, font=self.font, fill=colour)
+                for piece in self.fit(line, vp.width - s):
+                    draw.text((vp.x + s // 2, vp.y + s // 2 + int(1.3 * s * row)), piece, font=self.font, fill=colour)
+                    row += 1
         if self.scene.colour_by in (ColourBy.DISPLACEMENT, ColourBy.RESIDUAL):
             self._scalar_legend(image, draw)
         return image
+
+    def fit(self, line, width):
+        """`line` broken at spaces into pieces at most `width` pixels wide (continuations indented), so
+        that a label stays inside its panel."""
+        pieces, current = [], ""
+        for word in line.split(" "):
+            trial = f"{current} {word}" if current.strip() else f"{current}{word}"
+            if current.strip() and self.font.getlength(trial) > width:
+                pieces.append(current)
+                current = "  " + word
+            else:
+                current = trial
+        return pieces + [current]
 
     def _scalar_legend(self, image, draw):
         """A vertical colour bar in the lower right corner with its range and unit."""

@@ -14,22 +14,38 @@ blocks in the chapters (``lecture_notes/*.md``):
   gets that function's current source.
 
 ``tests/test_lecture_notes.py`` fails when either is stale, so the notes stay true to the code.
+
+Every run also records, per section, a hash of what its figures are drawn from in
+``lecture_notes/figures/manifest.json``: the section's own code in this module (with the helpers and
+constants it names), the solver, the demo modules that build and draw scenes, the assets, and the
+parameters (``--size``, ``--full``), plus a hash of each PNG it wrote. ``--check`` recomputes them,
+so a figure whose code, solver or parameters changed since it was drawn (or a PNG replaced by hand)
+is reported as stale. Hashing the inputs rather than comparing pixels keeps the check exact on any
+machine: floating point and threading differ between CPUs, the hash of the source does not.
 The measurement set-up follows ``../shared/vbd-facts.md``: a 1 x 0.1 x 0.1 m bar pinned at x = 0,
 nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, gravity -9.81 z, float64 on the CPU, error
 ||x - x*|| / ||x* - x_n|| against the converged global Newton step x*.
 """
 import ast
+import hashlib
+import io
 import json
+import os
 import re
 import sys
 import textwrap
 import time
+import tokenize
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 NOTES = REPO_ROOT / "lecture_notes"
 FIGURES = NOTES / "figures"
 NUMBERS = "numbers.json"
+MANIFEST = "manifest.json"
+# What every section's figures are drawn from, besides the section's own code in this module.
+DEPENDENCIES = ("solver/*.py", "demo/scenes.py", "demo/runner.py", "demo/compose.py", "demo/render.py",
+                "demo/colours.py", "assets/*")
 
 GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
 INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
@@ -42,8 +58,13 @@ CHECKPOINTS = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 7
 # ---------------------------------------------------------------------------------------------
 # Notes: generated blocks and code excerpts
 # ---------------------------------------------------------------------------------------------
+SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
+
+
 def function_source(path: Path, name: str) -> str:
-    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators included."""
+    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators
+    included, without the homework's solution markers (a region that ends the function would otherwise
+    be quoted without its END line)."""
     text = path.read_text(encoding="utf-8")
     node = ast.parse(text)
     for part in name.split("."):
@@ -53,7 +74,7 @@ def function_source(path: Path, name: str) -> str:
             raise KeyError(f"{name} not found in {path}")
         node = matches[0]
     first = min([node.lineno] + [d.lineno for d in node.decorator_list])
-    lines = text.splitlines()[first - 1:node.end_lineno]
+    lines = [line for line in text.splitlines()[first - 1:node.end_lineno] if not SOLUTION_MARKER.match(line)]
     return textwrap.dedent("\n".join(lines)).rstrip()
 
 
@@ -112,6 +133,108 @@ def stale(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
             if source != match["body"]:
                 problems.append(f"{path.name}: excerpt of {match['path']} {match['name']} no longer matches the "
                                 f"source; run python -m demo figures --only excerpts")
+    return problems
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures: what each was drawn from (manifest.json)
+# ---------------------------------------------------------------------------------------------
+def _code_text(text: str) -> str:
+    """Python source without comments, trailing spaces and blank lines: a comment edit is not a new figure."""
+    try:
+        comments = [token.start for token in tokenize.generate_tokens(io.StringIO(text).readline)
+                    if token.type == tokenize.COMMENT]
+    except (tokenize.TokenError, SyntaxError):
+        comments = []
+    lines = text.splitlines()
+    for row, col in comments:
+        lines[row - 1] = lines[row - 1][:col]
+    return "\n".join(line.rstrip() for line in lines if line.strip())
+
+
+def _section_code(name: str, root: Path = REPO_ROOT) -> str:
+    """The source of section `name` in demo/figures.py with every module-level helper and constant it
+    names, directly or through those helpers."""
+    text = (root / "demo" / "figures.py").read_text(encoding="utf-8")
+    definitions = {}
+    for node in ast.parse(text).body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            definitions[node.name] = node
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            for target in targets:
+                if isinstance(target, ast.Name):
+                    definitions[target.id] = node
+    wanted, todo = [], [f"section_{name}"]
+    while todo:
+        current = todo.pop()
+        if current in wanted or current not in definitions:
+            continue
+        wanted.append(current)
+        todo += [n.id for n in ast.walk(definitions[current]) if isinstance(n, ast.Name)]
+    return "\n\n".join(_code_text(ast.get_source_segment(text, definitions[n])) for n in sorted(wanted))
+
+
+def section_inputs(name: str, size, full: bool, root: Path = REPO_ROOT) -> str:
+    """A hash of everything section `name` draws its figures from (module docstring)."""
+    digest = hashlib.sha256()
+    digest.update(f"section {name}; size {size[0]}x{size[1]}; full {bool(full)}\n".encode())
+    digest.update(_section_code(name, root).encode())
+    for pattern in DEPENDENCIES:
+        for path in sorted(root.glob(pattern)):
+            if not path.is_file():
+                continue
+            data = path.read_bytes()
+            if path.suffix == ".py":
+                data = _code_text(data.decode("utf-8")).encode()
+            digest.update(f"\n{path.relative_to(root).as_posix()}\n".encode())
+            digest.update(data)
+    return digest.hexdigest()
+
+
+def _file_hash(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _snapshot(folder: Path) -> dict:
+    return {p.name: p.stat().st_mtime_ns for p in folder.glob("*.png")}
+
+
+def record_section(out: Path, name: str, before: dict, size, full: bool, root: Path = REPO_ROOT) -> None:
+    """Note in out/manifest.json what section `name` was drawn from and the PNGs it just wrote."""
+    path = out / MANIFEST
+    manifest = json.loads(path.read_text()) if path.exists() else {}
+    drawn = sorted(n for n, stamp in _snapshot(out).items() if before.get(n) != stamp)
+    manifest[name] = {"inputs": section_inputs(name, size, full, root), "size": f"{size[0]}x{size[1]}",
+                      "full": bool(full), "figures": {n: _file_hash(out / n) for n in drawn}}
+    path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
+
+
+def stale_figures(out: Path = FIGURES, notes: Path = NOTES, size=(960, 420), full: bool = False,
+                  root: Path = REPO_ROOT) -> list:
+    """Figures that no longer match what `python -m demo figures` would draw now: one line each."""
+    path = out / MANIFEST
+    if not path.exists():
+        return [f"no {MANIFEST} in {out}: the figures' origin is unknown; run python -m demo figures"]
+    manifest = json.loads(path.read_text())
+    problems, drawn = [], set()
+    for name in SECTIONS:
+        entry = manifest.get(name)
+        if entry is None:
+            problems.append(f"section {name} has never been drawn into {out}; run python -m demo figures --only {name}")
+            continue
+        drawn.update(entry["figures"])
+        if entry["inputs"] != section_inputs(name, size, full, root):
+            was = f"drawn at size {entry['size']}{' with --full' if entry['full'] else ''}"
+            problems.append(f"section {name}: its code, the solver, the scenes or the parameters changed since its "
+                            f"figures were {was}; run python -m demo figures --only {name}")
+        for figure, digest in sorted(entry["figures"].items()):
+            if not (out / figure).exists() or _file_hash(out / figure) != digest:
+                problems.append(f"{figure} is not the picture section {name} drew; "
+                                f"run python -m demo figures --only {name}")
+    for link in _figure_links(notes):
+        if (notes / link).parent.resolve() == out.resolve() and Path(link).name not in drawn:
+            problems.append(f"{link} is shown in the notes but drawn by no section")
     return problems
 
 
@@ -207,8 +330,9 @@ def _pyplot():
     return plt
 
 
-def _render_scene(scene, frames_to_save, out, prefix, size):
-    """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel errors}.
+def _render_scene(scene, frames_to_save, out, prefix, size, measure=()):
+    """Run a demo scene, composing and saving only the frames asked for; returns {frame: panel states}
+    of those and of the frames in `measure`.
 
     Every frame is simulated with its Newton ghost, so that a trajectory ghost has followed the
     converged solution all the way to the frames that are saved.
@@ -218,15 +342,16 @@ def _render_scene(scene, frames_to_save, out, prefix, size):
 
     runner = SceneRunner(scene)
     composer = None
-    wanted = sorted(frames_to_save)
-    errors = {}
+    wanted = sorted(set(frames_to_save) | set(measure))
+    saved = {}
     for frame in range(wanted[-1] + 1):
         states = runner.advance()
-        if frame in wanted:
+        if frame in frames_to_save:
             composer = composer or FrameComposer(scene, *size)
             _save_image(composer.compose(states), out / f"{prefix}_{frame:02d}.png")
-            errors[frame] = [s.error for s in states]
-    return errors
+        if frame in wanted:
+            saved[frame] = states
+    return saved
 
 
 # ---------------------------------------------------------------------------------------------
@@ -244,7 +369,7 @@ def section_colouring(out, full, size):
     meshes = [("bar 20x2x2 cells", solver.box_mesh(cells=(20, 2, 2), **BAR)),
               ("bar 40x4x4 cells", solver.box_mesh(cells=(40, 4, 4), **BAR)),
               ("bar 80x8x8 cells", solver.box_mesh(cells=(80, 8, 8), **BAR)),
-              ("sphere, voxelised (drop scene)", scenes.AssetMesh("assets/sphere.obj", resolution=10).build())]
+              ("sphere, voxelised (drop scene)", scenes.get("drop").panels[0].mesh.build())]
     rows, numbers = [], {}
     for label, mesh in meshes:
         row = [label, f"{mesh.n_vertices:,}", f"{mesh.n_tets:,}"]
@@ -263,6 +388,8 @@ def section_colouring(out, full, size):
 
 
 def section_sweeps(out, full, size):
+    import numpy as np
+
     from . import scenes
 
     numbers = {}
@@ -276,7 +403,13 @@ def section_sweeps(out, full, size):
                                            "dx = 2.5 cm", "dx = 1.25 cm"], rows)
     stiff = scenes.get("stiffness_sweep")
     frames = (1, 30)
-    errors = _render_scene(stiff, frames, out, "stiffness_sweep", size)
+    states = _render_scene(stiff, frames, out, "stiffness_sweep", size)
+    errors = {f: [s.error for s in states[f]] for f in frames}
+    # the soft bar stretches under gravity: the farthest vertex from the wall, against its rest distance
+    rest = stiff.panels[0].mesh.build().vertices
+    wall = rest[stiff.panels[0].fixed[0].select(rest)].mean(axis=0)
+    reach = lambda x: np.linalg.norm(x - wall, axis=1).max()
+    numbers["sweeps.stiffness.soft_stretch"] = f"{reach(states[30][0].positions) / reach(rest):.1f}"
     for frame in frames:
         for panel, error in zip(stiff.panels, errors[frame]):
             key = f"sweeps.stiffness.E{panel.material.youngs_modulus:.0e}.frame{frame}".replace("+0", "")
@@ -286,11 +419,22 @@ def section_sweeps(out, full, size):
         [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
 
     res = scenes.get("resolution_sweep")
-    errors = _render_scene(res, frames, out, "resolution_sweep", size)
+    states = _render_scene(res, frames, out, "resolution_sweep", size)
     numbers["sweeps.resolution.table"] = _table(
         ["frame (time)", *[f"{p.label}, E = {_E(p.material.youngs_modulus)} Pa, {p.iterations} it."
                            for p in res.panels]],
-        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{e:.3f}" for e in errors[f]]] for f in frames])
+        [[f"{f} (t = {(f + 1) / 60:.2f} s)", *[f"{s.error:.3f}" for s in states[f]]] for f in frames])
+
+    # the iteration sweep: distance to the converged trajectory (the picture) beside the per-step error
+    sweep = scenes.get("iteration_sweep")
+    shown = (5, 20, 47)
+    states = _render_scene(sweep, (shown[-1],), out, "iteration_sweep", size, measure=shown)
+    length = float(np.ptp(sweep.panels[0].mesh.build().vertices, axis=0).max())
+    numbers["sweeps.iterations.table"] = _table(
+        ["frame (time)", *[f"{p.iterations} it.: off the ghost / step error" for p in sweep.panels]],
+        [[f"{f} (t = {(f + 1) * sweep.dt:.2f} s)",
+          *[f"{100 * s.trajectory_gap:.0f} cm = {s.trajectory_gap / length:.2f} lengths / {s.error:.2f}"
+            for s in states[f]]] for f in shown])
     return numbers
 
 
@@ -355,7 +499,10 @@ def section_convergence(out, full, size):
     _save_plot(fig, out / "time_vs_error.png")
     numbers["convergence.timing.table"] = _table(
         ["material", "VBD time per iteration", "VBD time to error 1e-2", "VBD time to error 1e-6",
-         "Newton iterations", "Newton time"], timing_rows)
+         "Newton iterations", "Newton time"], timing_rows) + (
+        f"\n\n*Measured by `python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
+        f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
+        "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
     return numbers
 
 
@@ -509,6 +656,7 @@ def main(argv=None):
                         f"lecture_notes folder")
     numbers_path = args.out / NUMBERS
     numbers = json.loads(numbers_path.read_text()) if numbers_path.exists() else {}
+    width, height = args.size
     if args.check:
         problems = stale(numbers, args.notes)
         for line in problems:
@@ -516,12 +664,14 @@ def main(argv=None):
         missing = [m for m in _figure_links(args.notes) if not (args.notes / m).exists()]
         for m in missing:
             print(f"missing figure {m}; run python -m demo figures")
-        return 1 if problems or missing else 0
+        old_figures = stale_figures(args.out, args.notes, (width, height), args.full)
+        for line in old_figures:
+            print(line)
+        return 1 if problems or missing or old_figures else 0
     selected = [s for s in args.only.split(",") if s] or list(SECTIONS)
     unknown = [s for s in selected if s not in SECTIONS and s != "excerpts"]
     if unknown:
         raise DemoError(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}, excerpts")
-    width, height = args.size
     args.out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     for name in selected:
@@ -531,8 +681,10 @@ def main(argv=None):
 
         solver.ensure_taichi("cpu")
         t = time.perf_counter()
+        before = _snapshot(args.out)
         numbers.update(SECTIONS[name](args.out, args.full, (width, height)))
         numbers_path.write_text(json.dumps(numbers, indent=1, sort_keys=True) + "\n")
+        record_section(args.out, name, before, (width, height), args.full)
         print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
     changed = update_notes(numbers, args.notes)
     print(f"figures in {args.out}/, {len(changed)} chapter(s) updated, {time.perf_counter() - started:.0f} s in all")

@@ -42,7 +42,14 @@ END = re.compile(r"^[ \t]*# END SOLUTION[ \t]*$")
 # tests (they test the finished solver), the homework sources (solutions to the graded tests' checks).
 SKIP_NAMES = {".git", ".venv", "venv", "__pycache__", ".pytest_cache", ".cache", "out", ".ci", "tests",
               "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", STARTER_MARKER}
-SKIP_PATHS = {Path("benchmarks") / "results"}
+# Folders that hold a task's answer in another form than a solution region; the student README lists
+# them with the reason. A starter must carry no task's answer in any form (tests/test_homework.py).
+ANSWER_PATHS = {
+    Path("benchmarks"): "the benchmarks measure the finished solver, and their baselines "
+                        "(`benchmarks/baselines.py`: the VBD sweep in numpy and a Jacobi sweep) are tasks 1 and 3 "
+                        "written out",
+}
+SKIP_PATHS = set(ANSWER_PATHS)
 SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
 
 
@@ -292,8 +299,9 @@ def _student_readme(root: Path, regions) -> str:
     template = (root / README_TEMPLATE).read_text(encoding="utf-8")
     table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"
              + "\n".join(rows) + f"\n| | | **total** | **{total}** | | |")
+    left_out = "\n".join(f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items()))
     return (template.replace("{{TASK_TABLE}}", table).replace("{{TASK_SECTIONS}}", "\n".join(sections))
-            .replace("{{TOTAL}}", str(total)))
+            .replace("{{TOTAL}}", str(total)).replace("{{LEFT_OUT}}", left_out))
 
 
 def _pytest_ini(text: str) -> str:
@@ -350,7 +358,7 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
     if not quiet:
         print(f"wrote the homework starter to {out}: {len(regions)} solution regions in {len(by_file)} files "
               f"replaced, {len(TASKS)} tasks, {sum(t.points for t in TASKS)} points")
-        print(f"students: read {out / 'README.md'}; grade with `python -m pytest` inside {out}")
+        print(f"students: read {out / 'README.md'}; grade with `.venv/bin/python -m pytest` inside {out}")
     return regions
 
 

@@ -37,6 +37,7 @@ class PanelState:
     ghost: np.ndarray       # reference positions, or None
     lines: list             # label lines
     error: float            # relative error of this step against its Newton solution x*, or None
+    trajectory_gap: float = None    # m: max_i |x_i - ghost_i| against the converged trajectory, or None
 
 
 @dataclass(frozen=True)
@@ -90,6 +91,7 @@ class PanelSim:
         self.rest = mesh.vertices
         self.size = float(np.ptp(mesh.vertices, axis=0).max())    # m, the body's largest extent
         self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
+        self.length = float(np.ptp(mesh.vertices, axis=0).max())               # m, the body's longest side
         self.rest_tip_height = float(mesh.vertices[self.tip, 2].mean())
         self.reference = None       # the trajectory ghost's simulation, built on first use
         self.reference_source = None    # an earlier panel whose trajectory ghost is this one's too
@@ -293,10 +295,14 @@ class PanelSim:
             lines.append(f"iteration {self.iteration}")
         elif by is not ColourBy.COLOUR_SETS:
             lines.append(f"{self.sim.iterations} iterations, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
+        gap = None
         if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
             tip = self.tip
             drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
-            lines.append(f"tip drop {100 * drop(x):.0f} cm (ghost {100 * drop(self.ghost):.0f} cm)")
+            lines.append(f"tip drop {_cm(drop(x))} cm (ghost {_cm(drop(self.ghost))} cm)")
+            # the error that has built up over all steps so far: what the audience sees
+            gap = float(np.linalg.norm(x - self.ghost, axis=1).max())
+            lines.append(f"off the ghost by {_cm(gap)} cm = {gap / self.length:.0%} of its length")
         if self.error is not None:
             unsure = "" if self.error_converged else " (Newton not converged: approximate)"
             lines.append(f"relative error {self.error:.3f}{unsure}")
@@ -306,7 +312,34 @@ class PanelSim:
                 lines.append(f"drifted {100 * drift:.0f} cm sideways: the unconverged steps do not conserve momentum")
         if self.failure is not None:
             lines.append(self.failure)
-        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error)
+        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap)
+
+
+class RestPanel:
+    """A panel of an ``Advance.REST`` scene: the body at rest, coloured by its colour sets.
+
+    Builds no ``solver.Simulation``, only the mesh and its colouring, so that a homework starter can
+    draw its colouring before the solver tasks are done.
+    """
+
+    def __init__(self, scene, panel):
+        self.scene, self.panel = scene, panel
+        mesh = panel.mesh.build()
+        self.faces = np.ascontiguousarray(mesh.boundary_faces(), dtype=np.int32)
+        self.tets = np.asarray(mesh.tets)
+        self.start = np.asarray(mesh.vertices, dtype=np.float64)
+        coloring = solver.color_vertices(mesh.tets, mesh.n_vertices, key=mesh.topology_key())
+        pinned = _mask(panel.fixed, mesh.vertices) | _mask(panel.kinematic, mesh.vertices)
+        self.colors = np.where(pinned, -1, coloring.colors).astype(np.int32)
+        self.n_colors = len(np.unique(self.colors[self.colors >= 0]))
+
+    def state(self):
+        if self.scene.colour_by is ColourBy.COLOUR_SETS:
+            rgb = colours.categorical(self.colors)
+            lines = [self.panel.label, f"{self.n_colors} colours for {len(self.start)} vertices"]
+        else:
+            rgb, lines = colours.uniform(len(self.start)), [self.panel.label]
+        return PanelState(self.start, self.faces, rgb, None, lines, None)
 
 
 class SceneRunner:
@@ -314,6 +347,11 @@ class SceneRunner:
 
     def __init__(self, scene, arch="cpu"):
         self.scene = scene
+        if scene.advance is Advance.REST:
+            solver.ensure_taichi(arch)
+            self.panels = [RestPanel(scene, panel) for panel in scene.panels]
+            self.frame = 0
+            return
         self.panels = [PanelSim(scene, panel, arch) for panel in scene.panels]
         for i, p in enumerate(self.panels):
             for q in self.panels[:i]:
@@ -326,7 +364,7 @@ class SceneRunner:
         for p in self.panels:
             if self.scene.advance is Advance.ITERATIONS:
                 p.iterate(1 if self.frame > 0 else 0)
-            else:
+            elif self.scene.advance is Advance.TIME_STEPS:
                 p.step()
         self.frame += 1
         return [p.state() for p in self.panels]
@@ -355,6 +393,12 @@ def _mask(selectors, vertices):
     for selector in selectors:
         mask |= selector.select(vertices)
     return mask
+
+
+def _cm(metres):
+    """Whole centimetres, never "-0"."""
+    text = f"{100 * metres:.0f}"
+    return "0" if text == "-0" else text
 
 
 def _fraction(dt):

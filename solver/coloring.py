@@ -2,9 +2,13 @@
 
 Two vertices that share a tet get different colours, so all vertices of one colour can be solved
 in parallel without touching each other's tets (VBD [Chen et al. 2024] Sec. 3.5). Colourings are
-cached per mesh connectivity: in memory, and on disk under `$VBD_CACHE_DIR` (default
-`~/.cache/vbd-taichi`; set it to an empty string to switch the disk cache off).
+cached per mesh connectivity and per source of the colouring code (`_greedy`): in memory, and on
+disk under `$VBD_CACHE_DIR` (default `~/.cache/vbd-taichi`; set it to an empty string to switch the
+disk cache off). Keying on the source means a cache written by other code (the reference solution,
+an earlier version of a homework `_greedy`) is never read.
 """
+import hashlib
+import inspect
 import os
 import time
 from dataclasses import dataclass
@@ -67,6 +71,18 @@ def _greedy(offsets: ti.types.ndarray(), neighbours: ti.types.ndarray(), order: 
 
 
 _memory_cache = {}
+_code_digest = {}
+
+
+def _greedy_digest() -> str:
+    """12 hex digits of a hash of `_greedy`'s source: part of every cache key."""
+    if "greedy" not in _code_digest:
+        try:
+            source = inspect.getsource(_greedy)
+        except (OSError, TypeError):
+            source = ""
+        _code_digest["greedy"] = hashlib.sha256(source.encode("utf-8")).hexdigest()[:12]
+    return _code_digest["greedy"]
 
 
 def _cache_file(key: str):
@@ -78,10 +94,11 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
                    key: str = None) -> Coloring:
     """Greedy colouring of the vertex graph of `tets` (M, 4); deterministic for a given order.
 
-    key: a hash of the connectivity (`TetMesh.topology_key()`); when given, results are cached.
+    key: a hash of the connectivity (`TetMesh.topology_key()`); when given, results are cached
+    (keyed on it, the order and the source of `_greedy`).
     """
     require_implemented(_greedy)
-    cache_key = f"{key}-{order.value}" if key else None
+    cache_key = f"{key}-{order.value}-{_greedy_digest()}" if key else None
     if cache_key in _memory_cache:
         return _memory_cache[cache_key]
     path = _cache_file(cache_key) if cache_key else None

@@ -59,3 +59,29 @@ def test_more_than_64_colours_is_reported():
     tets = np.stack([i, j, np.full_like(i, 66), np.full_like(i, 67)], axis=1)
     with pytest.raises(solver.MeshError, match="more than 64 colours"):
         solver.color_vertices(tets, 68)
+
+
+def test_a_cache_written_by_other_colouring_code_is_never_read(monkeypatch, tmp_path):
+    """The disk cache is keyed on the source of `_greedy`: a homework starter never shows a colouring
+    that the reference solution (or an earlier version of the student's code) cached."""
+    from solver import coloring
+
+    monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
+    mesh = solver.box_mesh(cells=(5, 2, 3))
+    key = mesh.topology_key()
+    real = coloring._greedy_digest()
+    assert len(real) == 12
+    monkeypatch.setitem(coloring._code_digest, "greedy", "other0code00")
+    other = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)       # "other code" fills the cache
+    (written,) = tmp_path.glob("colors-*.npy")
+    assert "other0code00" in written.name and real not in written.name
+    swapped = np.where(other.colors == 0, 1, np.where(other.colors == 1, 0, other.colors)).astype(np.int32)
+    np.save(written, swapped)                      # a different valid colouring under the other code's key
+    monkeypatch.setattr(coloring, "_memory_cache", {})
+    assert solver.color_vertices(mesh.tets, mesh.n_vertices, key=key).cached   # same code: read back
+    monkeypatch.setitem(coloring._code_digest, "greedy", real)
+    monkeypatch.setattr(coloring, "_memory_cache", {})
+    mine = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)
+    assert not mine.cached
+    np.testing.assert_array_equal(mine.colors, other.colors)
+    assert not np.array_equal(mine.colors, swapped)

@@ -149,3 +149,21 @@ def test_ply_export_writes_32_bit_faces_without_warnings(tmp_path, capfd):
     used = np.unique(faces)
     np.testing.assert_allclose(back.points, mesh.vertices[used])
     np.testing.assert_array_equal(used[back.cells[0].data], faces)
+
+
+def test_duration_sets_the_number_of_frames(tmp_path, capsys):
+    out = tmp_path / "c"
+    assert main(["render", "colouring", "--duration", "1.5", "--fps", "2", "--size", "64x48", "--out", str(out),
+                 "--video", "none"]) == 0
+    assert f"wrote 3 frames to {out}" in capsys.readouterr().out
+    assert len(list(out.glob("frame_*.png"))) == 3
+    one_line_error(capsys, ["render", "colouring", "--duration", "2", "--frames", "3", "--out", str(out)],
+                   "--frames or --duration, not both")
+    one_line_error(capsys, ["render", "colouring", "--duration", "-1"], "duration in seconds")
+
+
+def test_one_frame_is_singular(tmp_path, capsys):
+    out = tmp_path / "one"
+    assert main(["render", "colouring", "--size", "64x48", "--out", str(out), "--video", "none"]) == 0
+    text = capsys.readouterr().out
+    assert f"wrote 1 frame to {out}/frame_0000.png in " in text and "frames" not in text

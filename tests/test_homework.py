@@ -90,6 +90,163 @@ def test_no_solution_line_survives(starter):
                     f"solution line survives in the starter {path}: {code}"
 
 
+# ---------------------------------------------------------------------------------------------
+# No file of the starter carries a task's answer in any form
+# ---------------------------------------------------------------------------------------------
+_PREFIX = re.compile(r"\b(?:self\.sim\.|self\.|sim\.|np\.linalg\.|np\.|ti\.math\.|ti\.)")
+_BROADCAST = re.compile(r"\[(?:\s*(?::|None|\.\.\.)\s*,?)+\]")     # x[:, None], H[..., None, None]
+_COLUMN = re.compile(r"\b\w+\[[\"'](\w+)[\"']\]")                   # col["q"] -> q
+_INDEX = re.compile(r"\[[a-z]\]")                                   # y[i], y[v] -> y[_]
+_ASSIGN = re.compile(r"^[\w\[\]\.,\s]+?(?:[-+*/@|&^]|<<|>>)?=(?!=)(?P<rhs>.*)$")
+
+
+def skeleton(line: str) -> str:
+    """A code line reduced to what survives a rewrite in Taichi or vectorised numpy: no comment, no
+    `self.`/`np.`/`ti.` prefixes, no broadcasting indices, one index name, the right-hand side of an
+    assignment only, no spaces or parentheses."""
+    code = line.split("#", 1)[0]
+    code = _INDEX.sub("[_]", _BROADCAST.sub("", _PREFIX.sub("", _COLUMN.sub(r"\1", code))))
+    match = _ASSIGN.match(code.strip())
+    if match:
+        code = match["rhs"]
+    return re.sub(r"[\s()]", "", code)
+
+
+def answer_skeletons(root=REPO, min_length=10):
+    """{task id: skeletons of its solution lines that occur in no line outside the solution regions}."""
+    regions = homework.all_regions(root)
+    inside = {}
+    for r in regions:
+        inside.setdefault(r.path, set()).update(range(r.start, r.end + 1))
+    common = set()
+    for path, numbers in inside.items():
+        common |= {skeleton(line) for n, line in enumerate((root / path).read_text().splitlines(), start=1)
+                   if n not in numbers}
+    found = {}
+    for r in regions:
+        for line in r.lines:
+            sk = skeleton(line)
+            if len(sk) >= min_length and not any(sk in other for other in common):
+                found.setdefault(r.task.id, set()).add(sk)
+    return found
+
+
+def leaks(text: str, answers: dict) -> set:
+    """(task, skeleton) pairs of `answers` that some line of `text` contains."""
+    lines = {skeleton(line) for line in text.splitlines()}
+    return {(task, sk) for task, sks in answers.items() for sk in sks if any(sk in line for line in lines)}
+
+
+def text_files(folder: Path):
+    for path in sorted(folder.rglob("*")):
+        if path.is_file() and path.stat().st_size < 4_000_000:
+            try:
+                yield path, path.read_text(encoding="utf-8")
+            except UnicodeDecodeError:
+                continue        # images and other binary files
+
+
+def test_every_task_has_distinctive_answer_lines():
+    answers = answer_skeletons()
+    assert set(answers) == {t.id for t in homework.TASKS}
+    assert all(len(sks) >= 2 for sks in answers.values()), answers
+
+
+def test_leak_scanner_finds_each_answer_rewritten():
+    """The scanner finds every task's solution lines re-indented inside other code, and the numpy twins
+    that benchmarks/baselines.py held (the reason benchmarks/ is not in the starter)."""
+    answers = answer_skeletons()
+    for task in homework.TASKS:
+        lines = [line.strip() for r in homework.all_regions(REPO) if r.task is task for line in r.lines]
+        text = "class Other:\n    def method(self):\n" + "\n".join("        " + line for line in lines)
+        assert {t for t, _ in leaks(text, answers)} == {task.id}, task.id
+    numpy_vbd = (
+        "        f_e = -vol[:, None] * (mu * Fm + (lam * (J - alpha))[:, None] * w)\n"
+        "        f += m_h2[:, None] * (y[v] - x[v])\n"
+        "        x[v] += np.linalg.solve(H, f[:, :, None])[:, :, 0]\n")
+    assert {t for t, _ in leaks(numpy_vbd, answers)} >= {"force_hessian", "vbd_sweep"}
+    jacobi = ("            d = ti.Vector.zero(self.sim.dtype, 3)\n"
+              "            if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:\n"
+              "                d = H.inverse() @ f\n")
+    assert "vbd_sweep" in {t for t, _ in leaks(jacobi, answers)}
+    assert not leaks("def unrelated(a, b):\n    return a + b\n", answers)
+
+
+def test_no_file_of_the_starter_carries_an_answer(starter):
+    """Every text file of the generated starter (code, notes, READMEs, grading, data) is scanned for every
+    task's distinctive solution lines, in Taichi or numpy form."""
+    answers = answer_skeletons()
+    found = {}
+    for path, text in text_files(starter):
+        hits = leaks(text, answers)
+        if hits:
+            found[path.relative_to(starter).as_posix()] = sorted(hits)
+    assert not found, found
+    for path, why in homework.ANSWER_PATHS.items():
+        assert not (starter / path).exists(), path
+        assert f"`{path.as_posix()}/`" in (starter / "README.md").read_text()
+
+
+def test_student_readme_runs_everything_with_the_venv_python(starter):
+    """The README creates .venv; every command after that must use its python (a bare `python` has no Taichi)."""
+    readme = (starter / "README.md").read_text()
+    blocks = re.findall(r"```bash\n(.*?)```", readme, flags=re.S)
+    commands = [line.split("#")[0].strip() for block in blocks for line in block.splitlines()]
+    commands = [c for c in commands if c]
+    assert any(c.startswith("python3 -m venv .venv") for c in commands)
+    runs = [c for c in commands if re.search(r"(^|\s|&&\s*)(\S*/)?python3?\s", c) and "-m venv" not in c]
+    assert runs and all(c.startswith(".venv/bin/python ") for c in runs), runs
+    assert ".venv/bin/python -m pytest" in readme and ".venv/bin/python -m demo render colouring" in readme
+    assert re.search(r"`?python -m (pytest|demo)", readme.replace(".venv/bin/python", "")) is None
+    assert "dpsi_dF_np" in readme and "d2psi_dF2_np" in readme      # what stays on purpose, and why
+
+
+def implement(starter: Path, task_id: str, extra_line: str = ""):
+    """Put `task_id`'s solution regions back into a starter (plus `extra_line` at their top), as a student would."""
+    for region in homework.all_regions(REPO):
+        if region.task.id != task_id:
+            continue
+        path = starter / region.path
+        lines = path.read_text().splitlines(keepends=True)
+        raise_line = f'raise NotImplementedError("{homework.todo_message(region.task, region.function)}")'
+        at = next(n for n, line in enumerate(lines) if line.strip() == raise_line)
+        first = at
+        while lines[first - 1].strip().startswith("#"):
+            first -= 1
+        indent = lines[at][:len(lines[at]) - len(lines[at].lstrip())]
+        body = ([indent + extra_line + "\n"] if extra_line else []) + [line + "\n" for line in region.lines]
+        path.write_text("".join(lines[:first] + body + lines[at + 1:]))
+
+
+def test_colouring_picture_needs_only_the_colouring_task(tmp_path):
+    """`demo render colouring` in a starter: stops with the colouring TODO, renders once task 2 alone is
+    done, and computes the colouring with the student's code even where the solution cached one."""
+    import numpy as np
+
+    import solver
+    from demo import scenes
+    from solver import coloring
+
+    out = tmp_path / "hw"
+    homework.generate(out, quiet=True)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    mesh = scenes.get("colouring").panels[0].mesh.build()
+    solution_key = f"{mesh.topology_key()}-{solver.VertexOrder.NATURAL.value}-{coloring._greedy_digest()}"
+    np.save(cache / f"colors-{solution_key}.npy", np.arange(mesh.n_vertices, dtype=np.int32))  # valid, not greedy
+    command = ["-m", "demo", "render", "colouring", "--out", str(tmp_path / "pic"), "--size", "160x90",
+               "--video", "none"]
+    before = run(command, out, VBD_CACHE_DIR=str(cache))
+    assert before.returncode == 3 and "not yet implemented: coloring: _greedy" in before.stderr, before.stderr
+    implement(out, "coloring", extra_line="# my colouring")
+    after = run(command, out, VBD_CACHE_DIR=str(cache))
+    assert after.returncode == 0, after.stderr[-2000:]
+    assert (tmp_path / "pic" / "frame_0000.png").exists()
+    assert "wrote 1 frame to" in after.stdout, after.stdout
+    written = sorted(p.name for p in cache.glob("colors-*.npy"))
+    assert len(written) == 2 and f"colors-{solution_key}.npy" in written, written   # its own, not the solution's
+
+
 def test_starter_imports_cleanly(starter):
     result = run(["-c", "import solver, solver.simulation, demo, demo.scenes, demo.runner; print('ok')"], starter)
     assert result.returncode == 0 and "ok" in result.stdout, result.stderr

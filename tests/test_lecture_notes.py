@@ -106,3 +106,70 @@ def test_excerpts_only_run_touches_no_figure(tmp_path):
     before = {p.name: p.read_bytes() for p in (notes / "figures").iterdir()}
     assert figures.main(["--only", "excerpts", "--out", str(notes / "figures"), "--notes", str(notes)]) == 0
     assert {p.name: p.read_bytes() for p in (notes / "figures").iterdir()} == before
+
+
+def test_figures_match_what_the_command_would_draw():
+    """manifest.json records a hash of every section's inputs (its code, the solver, the scenes, the
+    parameters) and of each PNG; after a change to any of them, `python -m demo figures` must run again."""
+    assert figures.stale_figures() == []
+
+
+def _figure_project(tmp_path):
+    """A copy of what the figures are drawn from, with one fake section output recorded in a manifest."""
+    root = tmp_path / "project"
+    for folder in ("solver", "demo", "assets"):
+        shutil.copytree(REPO / folder, root / folder, ignore=shutil.ignore_patterns("__pycache__"))
+    out = root / "lecture_notes" / "figures"
+    out.mkdir(parents=True)
+    before = figures._snapshot(out)
+    (out / "propagation_01.png").write_bytes(b"a picture")
+    figures.record_section(out, "propagation", before, (960, 420), False, root=root)
+    return root, out
+
+
+def _propagation_problems(root, out, size=(960, 420)):
+    return [p for p in figures.stale_figures(out, root / "lecture_notes", size, False, root=root)
+            if "propagation" in p]
+
+
+def test_figure_check_catches_changed_code_parameters_and_pictures(tmp_path):
+    root, out = _figure_project(tmp_path)
+    assert _propagation_problems(root, out) == []
+    assert _propagation_problems(root, out, size=(640, 280))              # another --size
+    edits = [("demo/scenes.py", "frames=41, fps=5", "frames=41, fps=6"),     # a scene parameter
+             ("demo/figures.py", "saved = (1, 5, 20, 40)", "saved = (1, 5, 20, 30)"),   # the section's own code
+             ("demo/figures.py", "colours=256", "colours=255"),              # a helper the section calls
+             ("solver/material.py", "alpha = 1.0 + mu / lam\n", "alpha = 1.0 + 0.5 * mu / lam\n")]   # the solver
+    for name, old, new in edits:
+        path = root / name
+        text = path.read_text()
+        assert old in text, (name, old)
+        path.write_text(text.replace(old, new, 1))
+        problems = _propagation_problems(root, out)
+        assert problems and "code, the solver, the scenes or the parameters changed" in problems[0], name
+        path.write_text(text)
+        assert _propagation_problems(root, out) == [], name
+    # comments do not change a figure, and a section's hash ignores other sections' code
+    path = root / "solver" / "material.py"
+    path.write_text(path.read_text().replace("# Taichi functions used inside", "# Taichi functions, used in"))
+    path = root / "demo" / "figures.py"
+    path.write_text(path.read_text().replace('rhos = (None, 0.8, 0.9, 0.95, 0.98)', 'rhos = (None, 0.9)'))
+    assert _propagation_problems(root, out) == []
+    (out / "propagation_01.png").write_bytes(b"another picture")           # replaced by hand
+    assert any("propagation_01.png is not the picture" in p for p in _propagation_problems(root, out))
+
+
+def test_check_command_fails_on_stale_figures(tmp_path, capsys):
+    notes = tmp_path / "notes"
+    shutil.copytree(NOTES, notes)
+    manifest = json.loads((notes / "figures" / figures.MANIFEST).read_text())
+    manifest["sweeps"]["inputs"] = "0" * 64
+    (notes / "figures" / figures.MANIFEST).write_text(json.dumps(manifest))
+    assert figures.main(["--check", "--out", str(notes / "figures"), "--notes", str(notes)]) == 1
+    assert "section sweeps:" in capsys.readouterr().out
+
+
+def test_excerpts_show_no_solution_markers():
+    for path in figures.chapters():
+        for match in figures.EXCERPT.finditer(path.read_text()):
+            assert "SOLUTION" not in match["body"], f"{path.name}: {match['name']}"
