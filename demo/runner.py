@@ -126,9 +126,8 @@ class PanelSim:
     def apply(self, settings):
         """Simulate with ``settings`` from the current state on: the one place a panel's settings change.
 
-        An open iteration-by-iteration step is closed first. Switching Chebyshev on or off builds a new
-        ``Simulation`` (it allocates the acceleration's state only when built with it) and carries the
-        positions, velocities and clock over; everything else is assigned to the running simulation.
+        An open iteration-by-iteration step is closed first; every setting is assigned to the running
+        simulation (they are all live settings of `solver.Simulation`).
         """
         if settings == self.settings:
             return
@@ -136,22 +135,12 @@ class PanelSim:
         material = dataclasses.replace(self.sim.material, youngs_modulus=settings.youngs_modulus)
         rho = settings.chebyshev_rho or None
         self._settings.update(material=material, iterations=settings.iterations, dt=settings.dt, chebyshev_rho=rho)
-        if (rho is None) != (self.sim.chebyshev_rho is None):
-            self._rebuild()
-        else:
-            self.sim.chebyshev_rho = rho
-            self.sim.set_material(material)
-            self.sim.iterations = settings.iterations
-            self.sim.dt = settings.dt
+        self.sim.chebyshev_rho = rho
+        self.sim.material = material
+        self.sim.iterations = settings.iterations
+        self.sim.dt = settings.dt
         self.reference = None       # the trajectory ghost restarts with the new settings on first use
         self.reference_synced = False
-
-    def _rebuild(self):
-        old = self.sim
-        self.sim = solver.Simulation(**self._settings)
-        self.sim.set_positions(old.positions)
-        self.sim.set_velocities(old.velocities)
-        self.sim.time, self.sim.frame = old.time, old.frame
 
     def step(self):
         """One full time step, measured against the Newton solution of the same step when enabled."""
