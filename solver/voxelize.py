@@ -3,6 +3,10 @@
 Inside test: a ray from each voxel centre along +z crosses the closed surface an odd number of times.
 All rays of one (x, y) column are handled together: each triangle's hit with a column is binned to
 the first voxel centre above it, and a cumulative sum along z counts crossings below every centre.
+
+Voxels joined to the rest only along an edge or at a corner would hang on a single lattice edge or
+node (a hinge no real body has), so of every group of touching voxels only the largest
+face-connected piece is kept; separate pieces of a multi-part surface all stay.
 """
 import numpy as np
 
@@ -46,6 +50,29 @@ def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, p
     return (np.cumsum(crossings, axis=2)[:, :, :nz] % 2) == 1
 
 
+def face_connected(inside: np.ndarray) -> np.ndarray:
+    """Boolean grid like `inside` (nx, ny, nz) without voxels that touch a larger face-connected piece
+    only along edges or at corners: in each group of voxels touching in any way, the largest
+    face-connected piece (ties: the first in memory order) is kept."""
+    from scipy import ndimage
+
+    faces, n_faces = ndimage.label(inside, structure=ndimage.generate_binary_structure(3, 1))
+    touching, _ = ndimage.label(inside, structure=ndimage.generate_binary_structure(3, 3))
+    if n_faces <= 1:
+        return inside.copy()
+    size = np.bincount(faces.ravel(), minlength=n_faces + 1)
+    size[0] = 0
+    group = np.zeros(n_faces + 1, dtype=np.int64)
+    group[faces[inside]] = touching[inside]
+    # per touching group, the face piece with the most voxels (stable: lowest label on ties)
+    order = np.lexsort((np.arange(n_faces + 1), -size, group))
+    first = np.r_[True, group[order][1:] != group[order][:-1]]
+    keep = np.zeros(n_faces + 1, dtype=bool)
+    keep[order[first]] = True
+    keep[0] = False
+    return keep[faces]
+
+
 def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: int, name: str = "surface"):
     """Fill a closed surface with voxels, `resolution` along its longest side, 6 tets per voxel.
 
@@ -58,7 +85,7 @@ def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: 
     # A tiny irrational shift keeps rays off mesh vertices and edges of axis-aligned inputs.
     origin = lo + pitch * 1e-7 * np.array([np.sqrt(2), np.sqrt(3), 0.0])
     dims = np.maximum(np.ceil((hi - origin) / pitch - 1e-9).astype(np.int64), 1)
-    inside = inside_voxels(vertices, faces, origin, pitch, dims)
+    inside = face_connected(inside_voxels(vertices, faces, origin, pitch, dims))
     cells = np.argwhere(inside)
     if len(cells) == 0:
         raise MeshError(f"{name}: no voxel centre lies inside the surface at resolution {resolution}; "
