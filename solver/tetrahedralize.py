@@ -9,9 +9,11 @@ extra and are the default.
 """
 from __future__ import annotations
 
+import contextlib
 import enum
 import hashlib
 import os
+import tempfile
 
 import numpy as np
 
@@ -44,12 +46,13 @@ def tetwild_available() -> bool:
 
 
 def tetwild_tets(vertices: np.ndarray, faces: np.ndarray, edge_length: float = None,
-                 envelope: float = ENVELOPE, name: str = "surface"):
+                 envelope: float = ENVELOPE, optimize: bool = True, name: str = "surface"):
     """Tetrahedralise a closed surface with fTetWild; results are cached per input.
 
     vertices: (V, 3) in metres; faces: (F, 3); edge_length: target tet edge length in metres
     (default: 1/20 of the bounding-box diagonal); envelope: allowed surface deviation as a fraction of
-    the bounding-box diagonal. Returns (vertices (N, 3) float64, tets (M, 4) int64), orientation not
+    the bounding-box diagonal; optimize: False skips fTetWild's shape optimisation (faster, but leaves
+    many slivers: useful only to make a bad mesh on purpose). Returns (vertices (N, 3) float64, tets (M, 4) int64), orientation not
     yet fixed. Raises ConfigError when pytetwild is not installed.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
@@ -71,15 +74,19 @@ def tetwild_tets(vertices: np.ndarray, faces: np.ndarray, edge_length: float = N
                           "`pip install -r requirements-mesh.txt`, or use mesher='voxels'") from None
     digest = hashlib.sha1(vertices.tobytes())
     digest.update(faces.tobytes())
-    digest.update(f"{edge_length!r} {envelope!r} {getattr(pytetwild, '__version__', '?')}".encode())
+    digest.update(f"{edge_length!r} {envelope!r} {optimize!r} {getattr(pytetwild, '__version__', '?')}".encode())
     folder = cache_folder()
     path = os.path.join(folder, f"tetwild-{digest.hexdigest()}.npz") if folder else None
     if path and os.path.exists(path):
         with np.load(path) as cached:
             return cached["vertices"], cached["tets"]
-    # one thread: fTetWild's multi-threaded result depends on scheduling, a cached asset should not
-    points, tets = pytetwild.tetrahedralize(vertices, faces, edge_length_abs=float(edge_length),
-                                            epsilon=float(envelope), num_threads=1)
+    # one thread: fTetWild's multi-threaded result depends on scheduling, a cached asset should not.
+    # fTetWild writes a scratch file (__tracked_surface.stl) into the working directory: run it in a
+    # temporary one so that nothing lands in the user's folder.
+    with tempfile.TemporaryDirectory(prefix="vbd-tetwild-") as scratch, contextlib.chdir(scratch):
+        points, tets = pytetwild.tetrahedralize(vertices, faces, edge_length_abs=float(edge_length),
+                                                epsilon=float(envelope), optimize=bool(optimize),
+                                                num_threads=1)
     if len(tets) == 0:
         raise MeshError(f"{name}: fTetWild produced no tets; check that the surface is closed and "
                         "not tiny compared with edge_length")
