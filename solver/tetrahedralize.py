@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import enum
 import hashlib
+import numbers
 import os
 import tempfile
 
@@ -51,18 +52,20 @@ def tetwild_tets(vertices: np.ndarray, faces: np.ndarray, edge_length: float = N
 
     vertices: (V, 3) in metres; faces: (F, 3); edge_length: target tet edge length in metres
     (default: 1/20 of the bounding-box diagonal); envelope: allowed surface deviation as a fraction of
-    the bounding-box diagonal; optimize: False skips fTetWild's shape optimisation (faster, but leaves
-    many slivers: useful only to make a bad mesh on purpose). Returns (vertices (N, 3) float64, tets (M, 4) int64), orientation not
-    yet fixed. Raises ConfigError when pytetwild is not installed.
+    the bounding-box diagonal; optimize: False skips fTetWild's shape optimisation (faster, but
+    leaves many slivers: useful only to make a bad mesh on purpose).
+    Returns (vertices (N, 3) float64, tets (M, 4) int64), orientation not yet fixed.
+    Raises ConfigError when pytetwild is not installed.
     """
     vertices = np.ascontiguousarray(vertices, dtype=np.float64)
     faces = np.ascontiguousarray(faces, dtype=np.int32)
     diagonal = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
     if edge_length is None:
         edge_length = diagonal / 20.0
-    if not (isinstance(edge_length, (int, float)) and np.isfinite(edge_length) and edge_length > 0):
+    if not (isinstance(edge_length, numbers.Real) and not isinstance(edge_length, bool)
+            and np.isfinite(edge_length) and edge_length > 0):
         raise ConfigError(f"edge_length must be a positive length in metres, got {edge_length!r}")
-    if not (isinstance(envelope, (int, float)) and 0 < envelope < 0.1):
+    if not (isinstance(envelope, numbers.Real) and 0 < envelope < 0.1):
         raise ConfigError(f"envelope must be a fraction of the bounding-box diagonal in (0, 0.1), got {envelope!r}")
     if edge_length > diagonal:
         raise ConfigError(f"edge_length {edge_length:g} m is longer than the whole surface ({diagonal:g} m "

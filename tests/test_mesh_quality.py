@@ -1,6 +1,4 @@
 """Tet quality measures against independent formulas, sliver warnings and repair, inversion counts."""
-import warnings
-
 import numpy as np
 import pytest
 

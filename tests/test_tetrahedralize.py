@@ -12,8 +12,8 @@ from solver.tetrahedralize import tetwild_available
 from solver.errors import MeshWarning
 from solver.voxelize import largest_face_connected, tetrahedralize_surface
 
-needs_tetwild = pytest.mark.skipif(not tetwild_available(),
-                                   reason="optional mesher pytetwild not installed (pip install -r requirements-mesh.txt)")
+needs_tetwild = pytest.mark.skipif(
+    not tetwild_available(), reason="optional mesher pytetwild not installed (pip install -r requirements-mesh.txt)")
 
 
 def _boxes(*boxes):
