@@ -38,23 +38,24 @@ def main():
             print(f"{name}: {os.path.getsize(os.path.join(HERE, name)) / 1024:.0f} KiB")
 
 
-# Real shapes: (surface file, tet mesh file, target edge length in metres, optimise the shapes?).
-# Each surface is turned from y-up to z-up and scaled so that its longest side is SHAPE_SIZE.
+# Real shapes: (surface file, tet mesh file, rotation from the file's y-up frame to z-up, target edge
+# length in metres, optimise the shapes?). Each is scaled so that its longest side is SHAPE_SIZE.
 SHAPE_SIZE = 0.2
+Y_UP_TO_Z_UP = ((1, 0, 0), (0, 0, -1), (0, 1, 0))            # (x, y, z) -> (x, -z, y)
+Y_UP_TO_Z_UP_SIDEWAYS = ((0, 0, 1), (1, 0, 0), (0, 1, 0))     # (x, y, z) -> (z, x, y): the cow's side faces -y
 REAL_SHAPES = (
-    ("bunny.off", "bunny.vtu", 0.022, True),
-    ("spot.off", "spot.vtu", 0.022, True),
-    # the same bunny without fTetWild's shape optimisation: hundreds of slivers, for tests and
+    ("bunny.off", "bunny.vtu", Y_UP_TO_Z_UP, 0.022, True),
+    ("spot.off", "spot.vtu", Y_UP_TO_Z_UP_SIDEWAYS, 0.02, True),
+    # the same bunny without fTetWild's shape optimisation: thousands of slivers, for tests and
     # benchmarks/inversion.py
-    ("bunny.off", "bunny_slivers.vtu", 0.022, False),
+    ("bunny.off", "bunny_slivers.vtu", Y_UP_TO_Z_UP, 0.022, False),
 )
 
 
 def make_real_shapes():
-    for surface_name, name, edge_length, optimize in REAL_SHAPES:
+    for surface_name, name, rotation, edge_length, optimize in REAL_SHAPES:
         surface = trimesh.load(os.path.join(HERE, surface_name), force="mesh", process=True)
-        x = np.asarray(surface.vertices, dtype=np.float64)
-        x = np.column_stack([x[:, 0], -x[:, 2], x[:, 1]])             # y-up -> z-up
+        x = np.asarray(surface.vertices, dtype=np.float64) @ np.asarray(rotation, dtype=np.float64).T
         x = (x - x.min(axis=0)) * (SHAPE_SIZE / np.ptp(x, axis=0).max())
         x[:, :2] -= 0.5 * (x[:, :2].max(axis=0))                      # centred in x, y; resting on z = 0
         vertices, tets = solver.tetrahedralize.tetwild_tets(x, surface.faces, edge_length, optimize=optimize,
