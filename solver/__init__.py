@@ -11,18 +11,20 @@ Importing this package does not initialise Taichi; `Simulation` does that on fir
 from .backend import Precision, ensure_taichi
 from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
 from .contact import Ground
-from .errors import ConfigError, MeshError, VBDError
+from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
 from .material import Material
-from .mesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh
+from .mesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
 from .metrics import relative_energy_gap, relative_error
 from .newton import NewtonResult, StepProblem, newton_solve
+from .quality import MeshQuality, det_F, inverted_count
 from .simulation import InitialGuess, IterationRecord, Simulation
+from .tetrahedralize import Mesher
 from .topology import Topology
 
 __all__ = [
     "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "Material", "MeshError",
-    "NewtonResult", "Precision", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError",
-    "VertexOrder",
-    "boundary_faces", "box_mesh", "color_vertices", "ensure_taichi", "is_valid_coloring", "load_mesh",
-    "newton_solve", "relative_energy_gap", "relative_error", "save_mesh",
+    "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "NewtonResult", "Precision", "Simulation",
+    "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder", "boundary_faces", "box_mesh",
+    "color_vertices", "det_F", "ensure_taichi", "inverted_count", "is_valid_coloring", "load_mesh",
+    "newton_solve", "relative_energy_gap", "relative_error", "save_mesh", "sliver_box_mesh",
 ]

@@ -15,3 +15,11 @@ class MeshError(VBDError, ValueError):
 
 class ConfigError(VBDError, ValueError):
     """A parameter outside its meaningful range (negative time step, Poisson ratio >= 0.5, ...)."""
+
+
+class MeshWarning(UserWarning):
+    """A mesh was loaded, but something about it was changed or may cause trouble (one-line message)."""
+
+
+class MeshQualityWarning(MeshWarning):
+    """The mesh has badly shaped tets (slivers) that an unconverged solver can invert."""

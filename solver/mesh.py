@@ -7,12 +7,17 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import io
+import numbers
 import os
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import MeshError
+from .cells import CORNERS, SURFACE_CELLS, linear_cell, split_cells
+from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning
+from .quality import SLIVER_RADIUS_RATIO, MeshQuality, degenerate_mask, mesh_quality, sliver_mask
+from .tetrahedralize import Mesher, tetwild_tets
 
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
 
@@ -71,6 +76,40 @@ class TetMesh:
         """(F, 3) int32 triangles of the boundary surface, counter-clockwise seen from outside."""
         return boundary_faces(self.tets)
 
+    def quality(self, sliver_radius_ratio: float = SLIVER_RADIUS_RATIO) -> MeshQuality:
+        """Shape statistics of the rest mesh: dihedral angles, radius ratios, slivers (`solver.quality`)."""
+        return mesh_quality(self.vertices, self.tets, sliver_radius_ratio)
+
+    def without_slivers(self, sliver_radius_ratio: float = SLIVER_RADIUS_RATIO) -> "TetMesh":
+        """A copy without the sliver tets (radius ratio below the threshold) that can go.
+
+        Slivers are nearly flat, so dropping them changes the volume very little; an interior sliver
+        leaves a thin crack. A sliver whose removal would cut a piece off the mesh (its face-connected
+        pieces would multiply) stays. Vertices left unused are dropped; `original_index` still maps
+        to the input's numbering.
+        """
+        sliver = sliver_mask(self.vertices, self.tets, sliver_radius_ratio)
+        n_pieces = int(face_components(self.tets).max()) + 1
+        faces = np.sort(self.tets[:, TET_FACES].reshape(-1, 3), axis=1)
+        face_id = np.unique(faces, axis=0, return_inverse=True)[1].reshape(-1, 4)
+        keep = ~sliver
+        while keep.any():
+            labels = np.full(self.n_tets, -1)
+            labels[keep] = face_components(self.tets[keep])
+            stray = labels >= n_pieces
+            if not stray.any():
+                break
+            # put back the slivers that glue a stray piece to the rest
+            glue = ~keep & np.isin(face_id, face_id[stray]).any(axis=1)
+            if not glue.any():
+                keep &= ~stray
+                break
+            keep |= glue
+        if not keep.any():
+            raise MeshError(f"all {self.n_tets} tets are slivers (radius ratio < {sliver_radius_ratio:g}); "
+                            "remesh the surface instead")
+        return TetMesh(self.vertices, self.tets[keep], self.original_index)
+
     def topology_key(self) -> str:
         """A hash of the connectivity (not the positions): the key of the colouring cache."""
         digest = hashlib.sha1(np.ascontiguousarray(self.tets, dtype=np.int32).tobytes())
@@ -79,7 +118,11 @@ class TetMesh:
 
 
 def _validated(vertices, tets, original_index):
-    """Check a raw (vertices, tets) pair; return cleaned copies or raise `MeshError`."""
+    """Check a raw (vertices, tets) pair; return cleaned copies or raise `MeshError`.
+
+    Vertices no tet uses are dropped before any check (a NaN there does no harm); every negatively
+    ordered tet is reordered on its own; only a mesh that still overlaps itself is rejected.
+    """
     vertices = np.asarray(vertices)
     tets = np.asarray(tets)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
@@ -92,50 +135,75 @@ def _validated(vertices, tets, original_index):
     vertices = np.array(vertices, dtype=np.float64)
     tets = np.array(tets, dtype=np.int64)
     n = vertices.shape[0]
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        raise MeshError(f"{bad.sum()} vertices have NaN or infinite coordinates (first: vertex "
-                        f"{np.flatnonzero(bad)[0]}); fix or remove them in the mesh file")
     if tets.min() < 0 or tets.max() >= n:
         t = np.flatnonzero((tets < 0).any(axis=1) | (tets >= n).any(axis=1))[0]
         raise MeshError(f"tet {t} has vertex index out of range {tets[t].tolist()} with {n} vertices; "
                         "indices must be 0-based and below the vertex count")
+    original = np.arange(n) if original_index is None else np.asarray(original_index, dtype=np.int64)
+    used = np.zeros(n, dtype=bool)
+    used[tets.ravel()] = True
+    if not used.all():
+        tets = (np.cumsum(used) - 1)[tets]
+        vertices = vertices[used]
+        original = original[used]
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise MeshError(f"{bad.sum()} vertices used by tets have NaN or infinite coordinates (first: vertex "
+                        f"{original[np.flatnonzero(bad)[0]]}); fix or remove them in the mesh file")
     srt = np.sort(tets, axis=1)
     repeated = (srt[:, 1:] == srt[:, :-1]).any(axis=1)
     if repeated.any():
         t = np.flatnonzero(repeated)[0]
-        raise MeshError(f"{repeated.sum()} tets use one vertex twice (first: tet {t} = {tets[t].tolist()}); "
-                        "remove these degenerate tets")
+        raise MeshError(f"{repeated.sum()} tets use one vertex twice (first: tet {t}); remove these "
+                        "degenerate tets, or load with repair=True")
     _, first, counts = np.unique(srt, axis=0, return_index=True, return_counts=True)
     if (counts > 1).any():
         t = first[counts > 1][0]
-        raise MeshError(f"{(counts - 1).sum()} duplicate tets (first: tet {t} = {tets[t].tolist()}); "
-                        "remove the repeated elements")
-    vol = signed_volumes(vertices, tets)
-    x = vertices[tets]
-    edges = x[:, [1, 2, 3, 2, 3, 3]] - x[:, [0, 0, 0, 1, 1, 2]]
-    longest = np.linalg.norm(edges, axis=2).max(axis=1)
-    flat = np.abs(vol) <= 1e-9 * longest ** 3
+        raise MeshError(f"{(counts - 1).sum()} duplicate tets (first: tet {t}); remove the repeated elements")
+    flat = degenerate_mask(vertices, tets)
     if flat.any():
         t = np.flatnonzero(flat)[0]
-        raise MeshError(f"{flat.sum()} tets have zero volume (first: tet {t}); remove these flat "
-                        "slivers or remesh")
-    negative = vol < 0
-    if negative.all():
-        tets = tets[:, [0, 1, 3, 2]]
-    elif negative.any():
-        t = np.flatnonzero(negative)[0]
-        raise MeshError(f"{negative.sum()} of {len(tets)} tets are inverted (first: tet {t}) while the "
-                        "rest are positive; the mesh folds over itself, fix it in the mesher")
-    used = np.zeros(n, dtype=bool)
-    used[tets.ravel()] = True
-    original = np.arange(n) if original_index is None else np.asarray(original_index, dtype=np.int64)
-    if not used.all():
-        remap = np.cumsum(used) - 1
-        tets = remap[tets]
-        vertices = vertices[used]
-        original = original[used]
+        raise MeshError(f"{flat.sum()} tets have zero volume (first: tet {t}); remove these flat tets, "
+                        "or load with repair=True to drop them")
+    tets = oriented_tets(vertices, tets)
+    folded = _folded_tets(tets)
+    if folded.any():
+        t = np.flatnonzero(folded)[0]
+        raise MeshError(f"{folded.sum()} tets overlap their neighbours (first: tet {t}): the mesh folds over "
+                        "itself, so reordering tets cannot fix it; remesh it, e.g. from its boundary surface")
     return vertices, np.ascontiguousarray(tets, dtype=np.int32), original
+
+
+def _folded_tets(tets: np.ndarray) -> np.ndarray:
+    """(M,) True for positively oriented tets that share a face with a tet on the same side of it, or a
+    face with two other tets: in a mesh that does not overlap itself, two tets sharing a face list
+    it in opposite orders."""
+    faces = tets[:, TET_FACES].reshape(-1, 3)
+    a, b, c = faces[:, 0], faces[:, 1], faces[:, 2]
+    parity = ((a > b).astype(np.int64) + (a > c) + (b > c)) % 2
+    _, inverse, counts = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    odd = np.bincount(inverse, weights=parity, minlength=len(counts))
+    bad_face = (counts > 2) | ((counts == 2) & (odd != 1))
+    return bad_face[inverse].reshape(-1, 4).any(axis=1)
+
+
+def face_components(tets: np.ndarray) -> np.ndarray:
+    """(M,) label of each tet's face-connected component (tets joined through a shared triangle;
+    tets touching only along an edge or at a vertex are in different components), largest first."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    tets = np.asarray(tets)
+    faces = np.sort(tets[:, TET_FACES].reshape(-1, 3), axis=1)
+    _, inverse = np.unique(faces, axis=0, return_inverse=True)
+    owner = np.repeat(np.arange(len(tets)), 4)
+    incidence = coo_matrix((np.ones(len(owner)), (owner, inverse.ravel())))
+    _, labels = connected_components(incidence @ incidence.T, directed=False)
+    order = np.argsort(-np.bincount(labels), kind="stable")
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return rank[labels]
 
 
 def kuhn_tets(cells: np.ndarray, node_dims) -> np.ndarray:
@@ -175,6 +243,28 @@ def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> 
     return TetMesh(vertices, oriented_tets(vertices, tets))
 
 
+def sliver_box_mesh(size=(0.2, 0.2, 0.2), cells=(4, 4, 4), jitter: float = 0.001, seed: int = 0) -> TetMesh:
+    """A box meshed badly on purpose, full of slivers: the Delaunay tets of a lattice whose interior
+    nodes are moved at random by up to `jitter` cells (nearly co-spherical points make flat tets).
+
+    size: metres; cells: lattice cells per axis. The defaults give 444 tets, 64 of them slivers.
+    Hung from its highest 5 % of vertices (E = 1e5 Pa, dt = 1/60 s, 50 VBD iterations per step),
+    VBD turns one of them inside out from the 4th step on while converged Newton inverts none:
+    a small test case for `benchmarks/inversion.py` and the solver tests.
+    """
+    from scipy.spatial import Delaunay
+
+    size = np.asarray(size, dtype=np.float64)
+    cells = np.asarray(cells)
+    axes = [np.linspace(0.0, size[a], cells[a] + 1) for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    interior = (points > 1e-9 * size) & (points < size * (1 - 1e-9))
+    shift = np.random.default_rng(seed).uniform(-1.0, 1.0, points.shape) * jitter * size / cells
+    points = points + np.where(interior, shift, 0.0)
+    tets = Delaunay(points).simplices
+    return TetMesh(points, without_degenerate(points, tets))
+
+
 def oriented_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Swap two vertices of every negatively oriented tet (used by generators, whose tets are valid)."""
     tets = tets.copy()
@@ -183,24 +273,94 @@ def oriented_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return tets
 
 
-def load_mesh(path, resolution: int = 16) -> TetMesh:
-    """Read a tet mesh, or tetrahedralise a closed surface.
+def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = None, repair: bool = False,
+              mesher=Mesher.VOXELS, edge_length: float = None) -> TetMesh:
+    """Read a volume mesh, or tetrahedralise a closed surface.
 
-    Volume formats: anything meshio reads (.msh, .vtk, .vtu, .mesh, TetGen .node/.ele, ...).
-    Surface formats (.obj, .stl, .ply, .off, ...): read with trimesh and filled with voxels, `resolution`
-    cells along the longest side of the bounding box, then split into tets.
+    Volume formats: anything meshio reads (.msh, .vtk, .vtu, .mesh, TetGen .node/.ele, ...), with
+    tets, hexahedra, wedges and pyramids (split conformingly into tets, `solver.cells`) and their
+    higher-order versions (corner nodes kept, with a `MeshWarning`). Surface cells in a volume file
+    are ignored.
+    Surface formats (.obj, .stl, .ply, .off, ...): read with trimesh and filled by `mesher`:
+    `Mesher.VOXELS` (default, `resolution` cells along the longest side) or `Mesher.TETWILD`
+    (optional pytetwild; `edge_length` in metres after scaling, default 1/20 of the diagonal).
+
+    scale: multiply every coordinate by this factor (e.g. 0.001 for a file in millimetres).
+    fit: scale uniformly so that the longest side of the bounding box is `fit` metres.
+    repair: drop zero-volume tets and slivers (`TetMesh.without_slivers`) instead of failing or warning.
+    A mesh that keeps slivers gets a one-line `MeshQualityWarning`.
     """
     path = os.fspath(path)
+    factor_of = _scale_rule(scale, fit)
+    if not isinstance(repair, bool):
+        raise ConfigError(f"repair must be True or False, got {repair!r}")
+    try:
+        mesher = Mesher(mesher)
+    except ValueError:
+        raise ConfigError(f"unknown mesher {mesher!r}; use one of: "
+                          f"{', '.join(m.value for m in Mesher)}") from None
+    if edge_length is not None and mesher is not Mesher.TETWILD:
+        raise ConfigError("edge_length only applies to mesher='tetwild'; use resolution for voxels")
     if not os.path.exists(path):
         raise MeshError(f"{path}: file not found; check the path")
     if os.path.isdir(path):
         raise MeshError(f"{path}: is a folder, not a mesh file; give the file's path")
     if path.lower().endswith(SURFACE_SUFFIXES):
-        from .voxelize import tetrahedralize_surface
-
         vertices, faces = _read_surface(path)
-        vertices, tets = tetrahedralize_surface(vertices, faces, resolution, name=path)
-        return TetMesh(vertices, tets)
+        vertices = vertices * factor_of(vertices)
+        if mesher is Mesher.TETWILD:
+            vertices, tets = tetwild_tets(vertices, faces, edge_length, name=path)
+        else:
+            from .voxelize import tetrahedralize_surface
+
+            vertices, tets = tetrahedralize_surface(vertices, faces, resolution, name=path)
+        factor = 1.0
+    else:
+        vertices, tets = _read_volume(path)
+        used = np.unique(tets)
+        factor = factor_of(vertices[used]) if np.isfinite(vertices[used]).all() else 1.0
+    if repair:
+        tets = without_degenerate(vertices, tets)
+    try:
+        mesh = TetMesh(vertices * factor, tets)
+    except MeshError as err:
+        raise MeshError(f"{path}: {err}") from None
+    if repair:
+        mesh = mesh.without_slivers()
+    quality = mesh.quality()
+    if quality.n_slivers:
+        fix = ("they hold the mesh together, so repair kept them; remesh its surface with mesher='tetwild'"
+               if repair else "load it with repair=True to drop them, or remesh its surface with mesher='tetwild'")
+        warnings.warn(f"{path}: {quality.summary()}; slivers can invert under load: {fix}",
+                      MeshQualityWarning, stacklevel=2)
+    return mesh
+
+
+def _scale_rule(scale, fit):
+    """Check the `scale` / `fit` arguments; return a function (N, 3) points -> scale factor."""
+    for name, value in (("scale", scale), ("fit", fit)):
+        if value is not None and not (isinstance(value, numbers.Real) and not isinstance(value, bool)
+                                      and np.isfinite(value) and value > 0):
+            raise ConfigError(f"{name} must be a positive number, got {value!r}")
+    if scale is not None and fit is not None:
+        raise ConfigError("give scale or fit, not both: scale multiplies coordinates, fit sets the "
+                          "longest bounding-box side in metres")
+    if fit is None:
+        return lambda points: float(scale) if scale is not None else 1.0
+    return lambda points: float(fit) / float(np.ptp(points, axis=0).max())
+
+
+def without_degenerate(vertices, tets):
+    """Tets (M', 4) without those using a vertex twice or of zero volume (for `repair=True`)."""
+    srt = np.sort(tets, axis=1)
+    tets = tets[(srt[:, 1:] != srt[:, :-1]).all(axis=1)]
+    ok = np.isfinite(vertices[tets]).all(axis=(1, 2))
+    ok[ok] = ~degenerate_mask(vertices, tets[ok])
+    return tets[ok]
+
+
+def _read_volume(path):
+    """(points (N, 3), tets (M, 4)) of a volume file, every cell split into tets."""
     import meshio
 
     try:
@@ -210,17 +370,26 @@ def load_mesh(path, resolution: int = 16) -> TetMesh:
         reason = str(err).splitlines()[0] if str(err) and not isinstance(err, SystemExit) else "unknown format"
         raise MeshError(f"{path}: cannot read this file ({reason}); use a format meshio reads, "
                         "e.g. .msh, .vtu, .vtk, .mesh or TetGen .node/.ele") from None
-    blocks = [c.data for c in raw.cells if c.type in ("tetra", "tetra10")]
+    kinds = sorted({c.type for c in raw.cells})
+    unknown = [k for k in kinds if linear_cell(k) is None and k not in SURFACE_CELLS
+               and not k.startswith(("line", "vertex"))]
+    if unknown:
+        raise MeshError(f"{path}: has cells of type {', '.join(unknown)} that cannot be split into tets; "
+                        "convert them to tetrahedra, hexahedra, wedges or pyramids")
+    blocks = [(c.type, c.data) for c in raw.cells if linear_cell(c.type) is not None and len(c.data)]
     if not blocks:
-        kinds = sorted({c.type for c in raw.cells}) or ["none"]
-        raise MeshError(f"{path}: contains no tetrahedra (cell types: {', '.join(kinds)}); "
-                        "a surface-only mesh must be tetrahedralised first, e.g. save it as .obj/.stl "
-                        "and load that")
-    tets = np.concatenate([b[:, :4] for b in blocks])
-    try:
-        return TetMesh(raw.points, tets)
-    except MeshError as err:
-        raise MeshError(f"{path}: {err}") from None
+        if any(k in SURFACE_CELLS for k in kinds):
+            raise MeshError(f"{path}: contains only surface cells ({', '.join(kinds)}), no volume; "
+                            "a surface mesh must be tetrahedralised first: save it as .obj/.stl/.off and load that")
+        raise MeshError(f"{path}: contains no volume cells (cell types: {', '.join(kinds) or 'none'}); "
+                        "give a mesh of tetrahedra, hexahedra, wedges or pyramids")
+    higher = sorted({k for k, _ in blocks if k not in CORNERS})
+    if higher:
+        count = sum(len(d) for k, d in blocks if k not in CORNERS)
+        warnings.warn(f"{path}: kept only the corner nodes of {count} higher-order cells ({', '.join(higher)}); "
+                      "the simulation uses linear tets", MeshWarning, stacklevel=3)
+    tets = [split_cells(linear_cell(k), d[:, :CORNERS[linear_cell(k)]]) for k, d in blocks]
+    return np.asarray(raw.points, dtype=np.float64), np.concatenate(tets)
 
 
 def _read_surface(path):

@@ -3,10 +3,16 @@
 Inside test: a ray from each voxel centre along +z crosses the closed surface an odd number of times.
 All rays of one (x, y) column are handled together: each triangle's hit with a column is binned to
 the first voxel centre above it, and a cumulative sum along z counts crossings below every centre.
+
+Voxels joined to the rest only along an edge or at a corner would hang on a single lattice edge or
+node (a hinge no real body has), and islands would fall away, so only the largest face-connected
+piece is kept (with a `MeshWarning` saying how many voxels went).
 """
+import warnings
+
 import numpy as np
 
-from .errors import MeshError
+from .errors import MeshError, MeshWarning
 from .mesh import kuhn_tets, oriented_tets
 
 
@@ -46,6 +52,19 @@ def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, p
     return (np.cumsum(crossings, axis=2)[:, :, :nz] % 2) == 1
 
 
+def largest_face_connected(inside: np.ndarray) -> np.ndarray:
+    """Boolean grid like `inside` (nx, ny, nz) holding only its largest face-connected piece (ties: the
+    first in memory order): voxels joined to it along an edge or at a corner, and islands, go."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(inside, structure=ndimage.generate_binary_structure(3, 1))
+    if n <= 1:
+        return inside.copy()
+    size = np.bincount(labels.ravel())
+    size[0] = 0
+    return labels == int(np.argmax(size))
+
+
 def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: int, name: str = "surface"):
     """Fill a closed surface with voxels, `resolution` along its longest side, 6 tets per voxel.
 
@@ -59,6 +78,13 @@ def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: 
     origin = lo + pitch * 1e-7 * np.array([np.sqrt(2), np.sqrt(3), 0.0])
     dims = np.maximum(np.ceil((hi - origin) / pitch - 1e-9).astype(np.int64), 1)
     inside = inside_voxels(vertices, faces, origin, pitch, dims)
+    kept = largest_face_connected(inside)
+    dropped = int(inside.sum() - kept.sum())
+    if dropped:
+        warnings.warn(f"{name}: dropped {dropped} of {int(inside.sum())} voxels that are not face-connected to the "
+                      f"largest piece (they would hang on an edge or a corner, or float free); raise the "
+                      f"resolution to keep them", MeshWarning, stacklevel=3)
+    inside = kept
     cells = np.argwhere(inside)
     if len(cells) == 0:
         raise MeshError(f"{name}: no voxel centre lies inside the surface at resolution {resolution}; "

@@ -1,0 +1,60 @@
+"""Split the cells of a mixed volume mesh (hexahedra, wedges, pyramids, higher-order cells) into tets.
+
+A linear cell is cut by coning from its vertex with the smallest global index, v0, to every face that
+does not contain v0; a quadrilateral face is cut along its diagonal through its own smallest-index
+vertex. Faces that contain v0 are then cut along the diagonal through v0, which is again their
+smallest-index vertex, so two cells sharing a quadrilateral always cut it the same way: the result is
+conforming, and it fills each (convex) cell exactly. Hexahedra give 6 tets, wedges 3, pyramids 2.
+The same rule reproduces `kuhn_tets` on a lattice numbered lexicographically.
+
+Higher-order cells (tetra10, hexahedron27, ...) keep their corner nodes only: meshio and VTK list the
+corners first.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+# Faces of each linear cell in meshio/VTK local numbering (any orientation; the tets are oriented later).
+CELL_FACES = {
+    "hexahedron": [(0, 1, 2, 3), (4, 5, 6, 7), (0, 1, 5, 4), (1, 2, 6, 5), (2, 3, 7, 6), (3, 0, 4, 7)],
+    "wedge": [(0, 1, 2), (3, 4, 5), (0, 1, 4, 3), (1, 2, 5, 4), (2, 0, 3, 5)],
+    "pyramid": [(0, 1, 2, 3), (0, 1, 4), (1, 2, 4), (2, 3, 4), (3, 0, 4)],
+}
+CORNERS = {"tetra": 4, "hexahedron": 8, "wedge": 6, "pyramid": 5}
+
+# Cell types that bound a volume but hold none: a file with only these is a surface mesh.
+SURFACE_CELLS = ("triangle", "triangle6", "triangle7", "quad", "quad8", "quad9", "polygon")
+
+
+def split_cells(kind: str, cells: np.ndarray) -> np.ndarray:
+    """Tets (K*C, 4) filling cells (C, n) of a linear meshio cell type `kind`, not yet oriented.
+
+    kind: "tetra", "hexahedron", "wedge" or "pyramid"; cells: global vertex indices, corners only.
+    """
+    cells = np.asarray(cells, dtype=np.int64)
+    if kind == "tetra":
+        return cells
+    n_cells = len(cells)
+    apex_local = np.argmin(cells, axis=1)                                  # (C,)
+    apex = cells[np.arange(n_cells), apex_local]
+    tets = []
+    for face in CELL_FACES[kind]:
+        face = np.asarray(face)
+        keep = (face[None, :] != apex_local[:, None]).all(axis=1)          # face does not contain v0
+        if len(face) == 3:
+            triangles = [cells[:, face]]
+        else:
+            quad = cells[:, face]                                          # (C, 4), rolled to its min
+            roll = np.argmin(quad, axis=1)
+            quad = quad[np.arange(n_cells)[:, None], (roll[:, None] + np.arange(4)) % 4]
+            triangles = [quad[:, [0, 1, 2]], quad[:, [0, 2, 3]]]
+        for tri in triangles:
+            tets.append(np.column_stack([apex, tri])[keep])
+    return np.concatenate(tets)
+
+
+def linear_cell(cell_type: str):
+    """The linear cell ("tetra", "hexahedron", "wedge", "pyramid") of a meshio volume cell type such as
+    "tetra10" or "hexahedron27"; None for any other type."""
+    base = cell_type.rstrip("0123456789")
+    return base if base in CORNERS else None
