@@ -85,7 +85,8 @@ class PanelSim:
             initial_guess=panel.initial_guess, chebyshev_rho=panel.chebyshev_rho,
             damping=scene.damping, ground=scene.ground,
             kinematic=kinematic if kinematic.any() else None,
-            kinematic_motion=panel.motion if kinematic.any() else None, arch=arch)
+            kinematic_motion=panel.motion if kinematic.any() else None, keep_orientation=panel.keep_orientation,
+            arch=arch)
         self.sim = solver.Simulation(**self._settings)
         self.scene_settings = self.settings
         self.rest = mesh.vertices
@@ -299,6 +300,8 @@ class PanelSim:
             drift = self.drift()
             if drift >= DRIFT_SHOWN:
                 lines.append(f"drifted {100 * drift:.0f} cm sideways: the unconverged steps do not conserve momentum")
+        if self.panel.show_inverted:
+            lines.append(f"inverted tets: {self.sim.inverted_count()}")
         if self.failure is not None:
             lines.append(self.failure)
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap)
