@@ -1,14 +1,12 @@
 """Regenerate every mesh in assets/ from the project's own generators (no third-party mesh data).
 
-    python assets/make_assets.py
+    python -m assets.make_assets
 """
 import os
-import sys
 
 import trimesh
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import solver  # noqa: E402
+import solver
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -1,6 +1,6 @@
 """Headless render speed: one 1280x720 frame of a ~20k-triangle surface on the CPU.
 
-    python benchmarks/render_speed.py --out out/bench
+    python -m benchmarks.render_speed --out out/bench
 
 Times the Taichi rasteriser (draw + copy of the image to NumPy) over a slowly deforming plate
 with a Newton-style ghost and a grid plane, after one warm-up frame (JIT compile). Writes
@@ -13,18 +13,15 @@ worst case of a camera that moves every frame (the column background_recomputed 
 """
 import argparse
 import csv
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-import solver  # noqa: E402
-from demo import colours  # noqa: E402
-from demo.render import Body, Camera, GridPlane, Renderer  # noqa: E402
+import solver
+from demo import colours
+from demo.render import Body, Camera, GridPlane, Renderer
 
 
 def main(argv=None):

@@ -117,6 +117,7 @@ def test_graded_tests_fail_on_the_starter_with_their_todo(starter, tmp_path):
     assert "VBD homework score" in result.stdout and "not implemented: force_hessian" in result.stdout
 
 
+@pytest.mark.slow
 def test_graded_tests_pass_on_the_solution(tmp_path):
     score = tmp_path / "score.json"
     result = run(["-m", "pytest", "-q", "-p", "no:cacheprovider", "homework/grading"], REPO,
