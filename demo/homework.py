@@ -41,7 +41,7 @@ END = re.compile(r"^[ \t]*# END SOLUTION[ \t]*$")
 # Never copied into a starter: version control, environments, caches, build output, the project's own
 # tests (they test the finished solver), the homework sources (solutions to the graded tests' checks).
 SKIP_NAMES = {".git", ".venv", "venv", "__pycache__", ".pytest_cache", ".cache", "out", ".ci", "tests",
-              "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", STARTER_MARKER}
+              "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", "vbd_taichi.egg-info", STARTER_MARKER}
 SKIP_PATHS = {Path("benchmarks") / "results"}
 SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
 

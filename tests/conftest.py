@@ -19,10 +19,9 @@ def pytest_addoption(parser):
 
 
 def _cuda_available() -> bool:
-    import taichi as ti
-    from taichi.lang.misc import is_arch_supported
+    from solver._ti import is_arch_supported, ti
 
-    return bool(is_arch_supported(ti.cuda))
+    return is_arch_supported(ti.cuda)
 
 
 @pytest.fixture(scope="session")

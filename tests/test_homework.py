@@ -49,7 +49,7 @@ def test_every_task_has_a_region_and_the_points_add_up():
 def test_starter_layout_and_readme(starter):
     assert (starter / "solver" / "__init__.py").exists() and (starter / "demo" / "__main__.py").exists()
     assert (starter / "grading" / "conftest.py").exists() and (starter / "lecture_notes").is_dir()
-    for absent in (".git", ".venv", "tests", "homework"):
+    for absent in (".git", ".venv", "tests", "homework", "vbd_taichi.egg-info"):
         assert not (starter / absent).exists(), absent
     assert "testpaths = grading" in (starter / "pytest.ini").read_text()
     readme = (starter / "README.md").read_text()
