@@ -7,9 +7,9 @@ import dataclasses
 import math
 
 import numpy as np
-import taichi as ti
 
 import solver
+from solver._ti import ti
 
 from . import colours, scenes
 from .errors import DemoError
