@@ -30,13 +30,18 @@ def cuda_present() -> bool:
     return _cuda_available()
 
 
+def pytest_configure(config):
+    if config.option.arch is None:
+        config.option.arch = os.environ.get("VBD_TEST_ARCH") or "cpu"
+        if config.option.arch not in ARCHS:
+            raise pytest.UsageError(f"VBD_TEST_ARCH={config.option.arch!r} is not a backend; "
+                                    f"set it to one of {', '.join(ARCHS)} or unset it")
+
+
 @pytest.fixture(scope="session")
 def arch(request) -> str:
     """The run's backend: ``"cpu"`` or ``"gpu"``."""
-    value = request.config.getoption("--arch") or os.environ.get("VBD_TEST_ARCH") or "cpu"
-    if value not in ARCHS:
-        raise pytest.UsageError(f"VBD_TEST_ARCH={value!r} is not a backend; use one of {', '.join(ARCHS)}")
-    return value
+    return request.config.option.arch
 
 
 @pytest.fixture(scope="session", autouse=True)
