@@ -1,19 +1,17 @@
 """Regenerate every mesh in assets/ from the project's own generators and the public surfaces here.
 
-    python assets/make_assets.py
+    python -m assets.make_assets
 
 The tet meshes of real shapes (bunny, spot) need the optional mesher (`pip install -r
 requirements-mesh.txt`); without it they are kept as committed and the rest is regenerated. Sources
 and licences: assets/README.md.
 """
 import os
-import sys
 
 import numpy as np
 import trimesh
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
-import solver  # noqa: E402
+import solver
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 

@@ -21,9 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from benchmarks.common import output_folder, parser, positive, quiet_taichi_banner  # noqa: E402
+from benchmarks.common import output_folder, parser, positive, quiet_taichi_banner
 
 OUTPUTS = ("render_speed.csv", "render_speed_frame.png")
 

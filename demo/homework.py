@@ -41,7 +41,7 @@ END = re.compile(r"^[ \t]*# END SOLUTION[ \t]*$")
 # Never copied into a starter: version control, environments, caches, build output, the project's own
 # tests (they test the finished solver), the homework sources (solutions to the graded tests' checks).
 SKIP_NAMES = {".git", ".venv", "venv", "__pycache__", ".pytest_cache", ".cache", "out", ".ci", "tests",
-              "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", STARTER_MARKER}
+              "homework", "imgui.ini", ".ipynb_checkpoints", ".DS_Store", "vbd_taichi.egg-info", STARTER_MARKER}
 # Folders that hold a task's answer in another form than a solution region; the student README lists
 # them with the reason. A starter must carry no task's answer in any form (tests/test_homework.py).
 ANSWER_PATHS = {

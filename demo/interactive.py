@@ -15,9 +15,9 @@ import textwrap
 from pathlib import Path
 
 import numpy as np
-import taichi as ti
 
 import solver
+from solver._ti import ti
 
 from . import colours, scenes
 from .errors import DemoError

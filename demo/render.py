@@ -23,9 +23,9 @@ compiled once per process whatever the mesh sizes are.
 from dataclasses import dataclass
 
 import numpy as np
-import taichi as ti
 
 import solver
+from solver._ti import ti
 
 EMPTY_KEY = np.iinfo(np.int64).max
 NEAR_PLANE = 1e-3

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
 
 
 def run_quick(module, out):
@@ -26,6 +25,7 @@ def rows(path):
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_pareto_quick(tmp_path):
     run_quick("pareto", tmp_path)
     data = rows(tmp_path / "pareto.csv")
@@ -50,6 +50,7 @@ def test_pareto_quick(tmp_path):
                 assert float(r["error"]) == pytest.approx(by_it[r["iterations"]], rel=1e-6)
 
 
+@pytest.mark.slow
 def test_throughput_quick(tmp_path):
     run_quick("throughput", tmp_path)
     data = rows(tmp_path / "throughput.csv")
@@ -66,6 +67,7 @@ def test_throughput_quick(tmp_path):
     assert (tmp_path / "throughput.png").exists()
 
 
+@pytest.mark.slow
 def test_stability_quick(tmp_path):
     run_quick("stability", tmp_path)
     data = rows(tmp_path / "stability.csv")
@@ -75,6 +77,7 @@ def test_stability_quick(tmp_path):
     assert (tmp_path / "stability.png").exists()
 
 
+@pytest.mark.slow
 def test_skip_quick(tmp_path):
     run_quick("skip", tmp_path)
     data = rows(tmp_path / "skip.csv")

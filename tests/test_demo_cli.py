@@ -21,6 +21,7 @@ def one_line_error(capsys, argv, match):
     assert match in err, err
 
 
+@pytest.mark.slow
 def test_render_writes_frames_video_and_meshes(tmp_path, capsys):
     out = tmp_path / "sweep"
     argv = ["render", "stiffness_sweep", "--frames", "3", "--size", "64x48", "--out", str(out),

@@ -51,6 +51,7 @@ def test_help_line_and_frames_do_not_pile_up(app):
     np.testing.assert_allclose(app.image(), first, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_controls(app):
     app.playing = False
     app.reset()

@@ -49,7 +49,7 @@ def test_every_task_has_a_region_and_the_points_add_up():
 def test_starter_layout_and_readme(starter):
     assert (starter / "solver" / "__init__.py").exists() and (starter / "demo" / "__main__.py").exists()
     assert (starter / "grading" / "conftest.py").exists() and (starter / "lecture_notes").is_dir()
-    for absent in (".git", ".venv", "tests", "homework"):
+    for absent in (".git", ".venv", "tests", "homework", "vbd_taichi.egg-info"):
         assert not (starter / absent).exists(), absent
     assert "testpaths = grading" in (starter / "pytest.ini").read_text()
     readme = (starter / "README.md").read_text()
@@ -274,6 +274,7 @@ def test_graded_tests_fail_on_the_starter_with_their_todo(starter, tmp_path):
     assert "VBD homework score" in result.stdout and "not implemented: force_hessian" in result.stdout
 
 
+@pytest.mark.slow
 def test_graded_tests_pass_on_the_solution(tmp_path):
     score = tmp_path / "score.json"
     result = run(["-m", "pytest", "-q", "-p", "no:cacheprovider", "homework/grading"], REPO,

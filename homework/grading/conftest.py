@@ -6,7 +6,6 @@ named by the environment variable ``VBD_GRADE_JSON`` when it is set.
 """
 import json
 import os
-import sys
 from pathlib import Path
 
 import pytest
@@ -21,7 +20,6 @@ def _project_root() -> Path:
 
 
 ROOT = _project_root()
-sys.path.insert(0, str(ROOT))          # grade this copy of the project, whatever else is installed
 os.environ["VBD_CACHE_DIR"] = ""       # no colouring cache: always run the colouring under test
 
 from demo.homework import TASKS  # noqa: E402
@@ -31,6 +29,19 @@ _results = {}   # nodeid -> (task, passed, first line of the failure)
 
 def pytest_configure(config):
     config.addinivalue_line("markers", "task(id): the homework task a graded test belongs to")
+
+
+def pytest_sessionstart(session):
+    """Grade this copy of the project, whatever else is installed: pytest.ini's ``pythonpath = .``
+    puts it first on the import path; stop with one line where something else came first."""
+    import demo
+    import solver
+
+    for package in (solver, demo):
+        found = Path(package.__file__).resolve().parent.parent
+        if found != ROOT:
+            pytest.exit(f"the grader imported {package.__name__} from {found}, not from {ROOT}; run pytest "
+                        f"inside {ROOT} (its pytest.ini puts that folder first on the import path)", returncode=4)
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -1,0 +1,41 @@
+"""solver._ti: Taichi where it is installed, else its fork Quadrants, and the runtime queries that differ."""
+import subprocess
+import sys
+
+from solver import _ti
+
+
+def run(code):
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+
+def test_taichi_is_preferred_and_the_module_is_the_real_one():
+    import importlib.util
+
+    expected = "taichi" if importlib.util.find_spec("taichi") else "quadrants"
+    assert _ti.NAME == expected and _ti.ti is sys.modules[expected]
+
+
+def test_initialised_arch_is_none_before_init_and_the_arch_after():
+    out = run("from solver._ti import ti, initialised_arch\n"
+              "assert initialised_arch() is None\n"
+              "ti.init(arch=ti.cpu)\n"
+              "print(initialised_arch() in (ti.x64, ti.arm64))\n")
+    assert out.returncode == 0 and out.stdout.strip().splitlines()[-1] == "True", out.stderr[-2000:]
+
+
+def test_without_taichi_it_falls_back_to_quadrants_or_says_what_to_install():
+    # `import solver` itself imports taichi, so the shim is loaded on its own; a None entry in
+    # sys.modules makes `import taichi` raise ImportError as on a machine without it
+    out = run("import importlib.util, sys\nsys.modules['taichi'] = None\n"
+              f"spec = importlib.util.spec_from_file_location('shim', {_ti.__file__!r})\n"
+              "shim = importlib.util.module_from_spec(spec)\n"
+              "try:\n    spec.loader.exec_module(shim)\nexcept ImportError as e:\n    print('ImportError:', e)\n"
+              "else:\n    print('fell back to', shim.NAME)\n")
+    assert out.returncode == 0, out.stderr[-2000:]
+    last = out.stdout.strip().splitlines()[-1]
+    try:
+        import quadrants  # noqa: F401
+        assert last == "fell back to quadrants"
+    except ImportError:
+        assert last.startswith("ImportError: neither taichi nor quadrants is installed; run `pip install")
