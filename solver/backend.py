@@ -2,8 +2,8 @@
 import warnings
 from enum import Enum
 
-import taichi as ti
-
+from . import _ti
+from ._ti import ti
 from .errors import ConfigError
 
 
@@ -28,17 +28,12 @@ def as_precision(value) -> Precision:
         raise ConfigError(f"unknown precision {value!r}; use 'float64' or 'float32'") from None
 
 
-def _initialised_arch():
-    """The arch Taichi runs on, or None when ``ti.init`` has not been called yet."""
-    from taichi.lang.impl import get_runtime
-
-    runtime = get_runtime()
-    if runtime.prog is None:
-        return None
-    return runtime.prog.config().arch
-
-
 _warned_mismatch = set()
+
+
+def _warn(message: str) -> None:
+    """A UserWarning printed as one line (no source line under it)."""
+    warnings.warn_explicit(message, UserWarning, filename="solver", lineno=0)
 
 
 def ensure_taichi(arch: str = "cpu") -> None:
@@ -50,23 +45,21 @@ def ensure_taichi(arch: str = "cpu") -> None:
     """
     if arch not in ("cpu", "gpu"):
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
-    running = _initialised_arch()
+    running = _ti.initialised_arch()
     if running is not None:
         on_cpu = running in (ti.x64, ti.arm64)
         if (arch == "gpu") == on_cpu and arch not in _warned_mismatch:
             _warned_mismatch.add(arch)
             name = "the CPU" if on_cpu else "the GPU"
-            warnings.warn(f"arch={arch!r} was asked for, but Taichi already runs on {name} in this process; "
-                          f"keeping {name} (start a new process to change the backend)", stacklevel=3)
+            _warn(f"arch={arch!r} was asked for, but Taichi already runs on {name} in this process; "
+                  f"keeping {name} (start a new process to change the backend)")
         return
     if arch == "cpu":
         ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)
         return
-    from taichi.lang.misc import is_arch_supported
-
     ti.set_logging_level(ti.ERROR)   # keep the CUDA probe quiet; our own warning says what happened
-    if is_arch_supported(ti.cuda):
+    if _ti.is_arch_supported(ti.cuda):
         ti.init(arch=ti.cuda, default_fp=ti.f64, log_level=ti.WARN)
         return
-    warnings.warn("no CUDA GPU is available here; running on the CPU instead", stacklevel=3)
+    _warn("no CUDA GPU is available here; running on the CPU instead")
     ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-import taichi as ti
+from ._ti import ti
 
 from .backend import ensure_taichi
 from .errors import MeshError

@@ -9,7 +9,7 @@ displacement u of the current step, with IPC's smoothed Coulomb law below the sl
 from dataclasses import dataclass
 
 import numpy as np
-import taichi as ti
+from ._ti import ti
 
 from .errors import ConfigError
 

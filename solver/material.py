@@ -13,7 +13,7 @@ Newton reference and the tests, which check one against the other and against fi
 from dataclasses import dataclass
 
 import numpy as np
-import taichi as ti
+from ._ti import ti
 
 from .errors import ConfigError
 

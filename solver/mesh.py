@@ -331,7 +331,8 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
     if quality.n_slivers:
         fix = ("they hold the mesh together, so repair kept them; remesh its surface with mesher='tetwild'"
                if repair else "load it with repair=True to drop them, or remesh its surface with mesher='tetwild'")
-        warnings.warn(f"{path}: {quality.summary()}; slivers can invert under load: {fix}",
+        warnings.warn(f"{path}: {quality.summary()}; slivers can invert under load: simulate it with "
+                      f"Simulation(..., keep_orientation=True), or {fix}",
                       MeshQualityWarning, stacklevel=2)
     return mesh
 

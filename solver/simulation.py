@@ -21,7 +21,7 @@ from typing import Callable, Optional
 from weakref import WeakKeyDictionary
 
 import numpy as np
-import taichi as ti
+from ._ti import ti
 
 from . import energy as energy_kernels
 from . import implicit_euler, orientation

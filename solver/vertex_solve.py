@@ -15,7 +15,7 @@ state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of 
 offsets (S + 1,) int32 first adjacency entry of each slot; others (E, 3) int32; adj_f (E, ADJ_FLOATS);
 params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 """
-import taichi as ti
+from ._ti import ti
 
 from .chebyshev import chebyshev_update
 from .contact import ground_force_hessian
