@@ -146,7 +146,10 @@ class GlobalNewton:
         kernels.hessian(x)
         rhs = -g[p.free].ravel()
         d = np.zeros_like(x)
-        d[p.free] = self.direct.solve(rhs).reshape(-1, 3)
+        try:
+            d[p.free] = self.direct.solve(rhs).reshape(-1, 3)
+        except RuntimeError:            # qdldl: "not quasi-definite"
+            d[:] = np.nan
         if np.isfinite(d).all() and np.vdot(g, d) < 0:
             return d
         warnings.warn("the projected Hessian is not positive definite (no descent direction); "
