@@ -164,15 +164,16 @@ class GlobalNewton:
         return -g * inverse_stiffness[:, None]
 
     def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
-              keep_iterates: bool = False) -> NewtonResult:
-        """Minimise G from x0 (N, 3); same result, convergence test and warnings as `newton_solve`."""
+              keep_iterates: bool = False, time_budget: float = None) -> NewtonResult:
+        """Minimise G from x0 (N, 3); same result, convergence test and warnings as `newton_solve`.
+        time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds."""
         self.check(problem)
         kernels = StepKernels(self.pattern, problem)
         return newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates,
-                                 lambda x, g, it: self.newton_direction(kernels, x, g))
+                                 lambda x, g, it: self.newton_direction(kernels, x, g), time_budget)
 
 
-def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction):
+def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction, time_budget=None):
     """The loop of `newton_solve` with G and dG/dx from `kernels` and the step from
     direction(x, g, iteration) -> d (N, 3). Shared by the direct and the PCG Newton."""
     free = problem.free
@@ -215,8 +216,10 @@ def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iter
         if alpha * np.abs(d).max() <= tolerance * size or np.abs(g).max() <= 1e-13 * force_scale:
             result.converged = True
             break
+        if time_budget is not None and result.history[-1].seconds > time_budget:
+            break
     result.x = x.copy()
-    if not result.converged:
+    if not result.converged and (time_budget is None or result.history[-1].seconds <= time_budget):
         warnings.warn(f"Newton did not converge ({result.iterations} iterations)", stacklevel=3)
     return result
 

@@ -258,8 +258,9 @@ class NewtonPCG:
         return d, self.max_cg_iterations, relative
 
     def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
-              keep_iterates: bool = False) -> PCGResult:
-        """Minimise G from x0 (N, 3); the convergence test of `newton_solve`."""
+              keep_iterates: bool = False, time_budget: float = None) -> PCGResult:
+        """Minimise G from x0 (N, 3); the convergence test of `newton_solve`; time_budget as in
+        `GlobalNewton.solve`."""
         p = self.pattern
         if problem.tets.shape != p.tets.shape or not np.array_equal(problem.free, p.free) \
                 or not np.array_equal(problem.tets, p.tets):
@@ -291,7 +292,8 @@ class NewtonPCG:
             state["direct_iterations"] += 1
             return self.direct.newton_direction(kernels, x, g)
 
-        base = newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction)
+        base = newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction,
+                                 time_budget)
         result = PCGResult(base.x, base.iterations, base.converged, base.history, base.iterates)
         result.cg_iterations = cg_counts
         result.direct_iterations = state["direct_iterations"]
