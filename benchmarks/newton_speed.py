@@ -53,7 +53,8 @@ def solvers():
     from solver.global_newton import LinearSolver, global_newton
     from solver.pcg import Preconditioner, newton_pcg
 
-    out = {f"Newton ({s.value})": (lambda p, s=s: global_newton(p.tets, p.free, s)) for s in LinearSolver}
+    out = {f"Newton ({s.value})": (lambda p, s=s: global_newton(p.tets, p.free, s)) for s in LinearSolver
+           if s is not LinearSolver.AUTO}
     for pre in Preconditioner:
         out[f"Newton-PCG ({pre.value})"] = lambda p, pre=pre: newton_pcg(p.tets, p.free, pre)
     return out
@@ -75,6 +76,23 @@ def time_error_points(method, problem, x_star, x_n, budget, tolerance=1e-12, max
     for record, x, k in zip(result.history[1:], result.iterates, cg):
         points.append((record.seconds, solver.relative_error(x, x_star, x_n), record.iteration, int(k)))
     return points
+
+
+def pareto_curve(case, name, budget):
+    """Rows (iteration, seconds, error, energy gap, measured seconds) of method `name` (a key of
+    `solvers()`) on a `benchmarks.pareto.Case`, in the format of pareto's `add(...)`; iteration counts
+    Newton iterations, seconds are the warm solve's wall time."""
+    problem = case.problem
+    method = solvers()[name](problem)
+    x0 = problem.y_with_constraints()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        method.solve(problem, x0, 1e-12, 1)
+        result = method.solve(problem, x0, 1e-12, 100, keep_iterates=True, time_budget=budget)
+    rows = [(0, 0.0) + case.measure(x0) + (0.0,)]
+    for record, x in zip(result.history[1:], result.iterates):
+        rows.append((record.iteration, record.seconds) + case.measure(x) + (record.seconds,))
+    return rows
 
 
 def median_seconds(run, repeats):
@@ -194,6 +212,7 @@ def main(argv=None):
     init_taichi(args.threads)
     direct = [name for name in solvers() if name.startswith("Newton (")]
     every = list(solvers())
+    curve_names = ["Newton (qdldl)", "Newton (superlu)"] + [n for n in every if n.startswith("Newton-PCG")]
     if args.quick:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (10, 2, 2)), ((1.0, 0.1, 0.1), (20, 2, 2))
         curve_bars, states, repeats, budget = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"], 1, 5.0
@@ -205,7 +224,6 @@ def main(argv=None):
     rows, curve_rows = [], []
     measure_steps(rows, "converged step", *step_bar, repeats, 50, direct)
     measure_steps(rows, "one iteration", *iteration_bar, max(1, repeats // 2), 1, direct)
-    curve_names = ["Newton (qdldl)"] + [n for n in every if n.startswith("Newton-PCG")]
     for size, cells in curve_bars:
         measure_curves(curve_rows, rows, size, cells, states, budget, curve_names)
     write_csv(os.path.join(args.out, "newton_speed.csv"), rows)

@@ -245,12 +245,15 @@ def assemble_kernel(A9: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows:
             W = ti.Matrix.zero(ti.f64, 9, 3)        # W[(c, b), d] = sum_e A[(c, b), (d, e)] m_le
             for r, d in ti.ndrange(9, 3):
                 W[r, d] = A[r, 3 * d] * m[l, 0] + A[r, 3 * d + 1] * m[l, 1] + A[r, 3 * d + 2] * m[l, 2]
-            for k in range(4):
+            for k in range(l + 1):                 # block (k, l) of vol B^T A B, and its transpose (l, k)
                 start = block_start[t, k, l]
                 if start >= 0:
-                    for c, d in ti.ndrange(3, 3):   # block (k, l) of vol B^T A B
-                        data[start + c * row_length[t, k] + d] += (W[3 * c, d] * m[k, 0] + W[3 * c + 1, d] * m[k, 1]
-                                                                   + W[3 * c + 2, d] * m[k, 2])
+                    mirror = block_start[t, l, k]
+                    for c, d in ti.ndrange(3, 3):
+                        value = W[3 * c, d] * m[k, 0] + W[3 * c + 1, d] * m[k, 1] + W[3 * c + 2, d] * m[k, 2]
+                        data[start + c * row_length[t, k] + d] += value
+                        if k != l:
+                            data[mirror + d * row_length[t, l] + c] += value
     for i in range(masses.shape[0]):
         f = free_index[i]
         if f >= 0:
