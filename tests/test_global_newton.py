@@ -1,0 +1,152 @@
+"""The Taichi Newton against the numpy oracle: G, gradient, projected Hessian and the converged step."""
+import sys
+import warnings
+
+import numpy as np
+import pytest
+
+import solver
+from solver.global_newton import DirectSolver, LinearSolver, fast_newton_solve, global_newton
+from solver.hessian import HessianPattern, StepKernels
+
+
+def _bar_with_ground():
+    """A pinned bar pushed into the ground: contact active in the solution."""
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(8, 2, 2))
+    sim = solver.Simulation(mesh, solver.Material(1e5, 0.3, 1000.0), dt=1 / 60,
+                            fixed=mesh.vertices[:, 0] < 1e-9, iterations=1,
+                            ground=solver.Ground(height=-0.01, stiffness=1e4))
+    sim.set_velocities(np.tile([0.0, 0.3, -1.0], (mesh.n_vertices, 1)))
+    return sim.step_problem()
+
+
+def _kinematic_block():
+    """A stiff block whose left face is pulled along x by a script and whose right face is fixed."""
+    mesh = solver.box_mesh(size=(0.3, 0.2, 0.1), cells=(3, 2, 2))
+    X = mesh.vertices
+    sim = solver.Simulation(mesh, solver.Material(1e6, 0.4, 1000.0), dt=1 / 60,
+                            fixed=X[:, 0] > 0.3 - 1e-9, kinematic=X[:, 0] < 1e-9,
+                            kinematic_motion=lambda t, rest: rest + np.array([-2.0 * t, 0.0, 0.5 * t]),
+                            iterations=1)
+    return sim.step_problem()
+
+
+def _falling_cube():
+    """A free cube falling onto the ground with a spin: no fixed vertex."""
+    mesh = solver.box_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2), origin=(0.0, 0.0, 0.001))
+    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), dt=1 / 30, iterations=1,
+                            ground=solver.Ground(height=0.0, stiffness=1e5))
+    omega = np.array([0.0, 3.0, 1.0])
+    sim.set_velocities(np.cross(omega, mesh.vertices - 0.05) + [0.0, 0.0, -1.0])
+    return sim.step_problem()
+
+
+PROBLEMS = {"bar_with_ground": _bar_with_ground, "kinematic_block": _kinematic_block,
+            "falling_cube": _falling_cube}
+
+
+@pytest.fixture(scope="module", params=sorted(PROBLEMS))
+def problem(request):
+    return PROBLEMS[request.param]()
+
+
+def _perturbed(p, scale, seed):
+    rng = np.random.default_rng(seed)
+    return np.ascontiguousarray(p.y_with_constraints() + scale * rng.standard_normal(p.y.shape) * p.free[:, None])
+
+
+def test_energy_gradient_and_projected_hessian_match_the_oracle(problem):
+    p = problem
+    kernels = StepKernels(HessianPattern(p.tets, p.free), p)
+    x = _perturbed(p, 0.01, 0)
+    assert kernels.energy(x) == pytest.approx(p.energy(x), rel=1e-12)
+    g = p.gradient(x)
+    np.testing.assert_allclose(kernels.gradient(x), g, rtol=0, atol=1e-10 * np.abs(g).max())
+    free = np.flatnonzero(np.repeat(p.free, 3))
+    H_ref = p.hessian(x)[free][:, free]
+    H = kernels.hessian(x)
+    assert H.shape == H_ref.shape
+    assert abs(H - H_ref).max() <= 1e-9 * abs(H_ref).max()
+    # the projection is active here, so this compares the projections and not just the Hessians
+    assert abs(p.hessian(x, project=False)[free][:, free] - H_ref).max() > 1e-3 * abs(H_ref).max()
+
+
+def test_projection_of_an_inverted_and_a_degenerate_tet():
+    """Inverted (det F < 0), flattened and rest-state tets: the closed-form eigensystem gives the
+    same projected dP/dF as a dense eigendecomposition."""
+    from solver.material import d2psi_dF2_np
+
+    rng = np.random.default_rng(3)
+    F = np.stack([np.eye(3), np.diag([1.0, 1.0, -0.5]), np.diag([1.0, 1.0, 1e-9]),
+                  np.diag([0.7, 0.7, 0.7]), np.eye(3) + 0.4 * rng.standard_normal((3, 3))])
+    # one tet per F: vertices 0..3 at the columns of F after a unit rest tet with m_k = e_k
+    x = np.concatenate([np.zeros((len(F), 1, 3)), F.transpose(0, 2, 1)], axis=1).reshape(-1, 3)
+    tets = np.arange(4 * len(F)).reshape(-1, 4)
+    grad_rows = np.tile(np.array([[-1.0, -1.0, -1.0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]), (len(F), 1, 1))
+    mu, lam = 3.0, 20.0
+    p = solver.StepProblem(tets=tets, grad_rows=grad_rows, volumes=np.ones(len(F)), masses=np.ones(len(x)),
+                           y=x, free=np.ones(len(x), bool), constrained_positions=x, h=1.0, mu=mu, lam=lam)
+    kernels = StepKernels(HessianPattern(tets, p.free), p)
+    A9 = kernels.stress_hessians(np.ascontiguousarray(x))
+    A = d2psi_dF2_np(F, mu, lam).reshape(-1, 9, 9)
+    w, Q = np.linalg.eigh(A)
+    expected = np.einsum("tij,tj,tkj->tik", Q, np.maximum(w, 0.0), Q)
+    np.testing.assert_allclose(A9, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+    assert (w.min(axis=1)[1:] < -1e-6).all()      # every case but the rest state needs projecting
+
+
+def test_fast_newton_agrees_with_newton_solve(problem):
+    p = problem
+    x0 = p.y_with_constraints()
+    ref = solver.newton_solve(p, x0, tolerance=1e-12)
+    fast = fast_newton_solve(p, x0, tolerance=1e-12)
+    assert ref.converged and fast.converged
+    step = np.abs(ref.x - x0).max()
+    assert step > 1e-4
+    assert np.abs(fast.x - ref.x).max() <= 1e-9 * step
+    assert abs(fast.iterations - ref.iterations) <= 1
+    energies = [r.energy for r in fast.history]
+    assert all(b <= a + 1e-12 * abs(a) for a, b in zip(energies, energies[1:]))
+
+
+@pytest.mark.parametrize("kind", list(LinearSolver))
+def test_every_linear_solver_gives_the_same_step(kind):
+    p = _bar_with_ground()
+    if kind is LinearSolver.CHOLESPY:
+        pytest.importorskip("cholespy", reason="optional sparse solver cholespy is not installed")
+    if kind is LinearSolver.QDLDL:
+        pytest.importorskip("qdldl", reason="optional sparse solver qdldl is not installed")
+    x0 = p.y_with_constraints()
+    ref = fast_newton_solve(p, x0, tolerance=1e-12, linear_solver=LinearSolver.SUPERLU)
+    result = fast_newton_solve(p, x0, tolerance=1e-12, linear_solver=kind)
+    assert result.converged
+    assert np.abs(result.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
+
+
+def test_solver_is_cached_per_connectivity_and_free_mask():
+    p = _bar_with_ground()
+    a = global_newton(p.tets, p.free)
+    assert global_newton(p.tets.copy(), p.free.copy()) is a
+    free = p.free.copy()
+    free[np.flatnonzero(free)[0]] = False
+    assert global_newton(p.tets, free) is not a
+    with pytest.raises(solver.ConfigError, match="another mesh or free mask"):
+        global_newton(p.tets, free).solve(p, p.y)
+
+
+def test_missing_optional_solver_falls_back_to_superlu_with_one_warning(monkeypatch):
+    p = _bar_with_ground()
+    pattern = HessianPattern(p.tets, p.free)
+    monkeypatch.setitem(sys.modules, "qdldl", None)      # makes `import qdldl` fail
+    monkeypatch.setattr("solver.global_newton._WARNED", set())
+    with pytest.warns(UserWarning, match="qdldl.*SuperLU"):
+        assert DirectSolver(pattern, LinearSolver.QDLDL).kind is LinearSolver.SUPERLU
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert DirectSolver(pattern, LinearSolver.QDLDL).kind is LinearSolver.SUPERLU
+
+
+def test_unknown_linear_solver_is_a_config_error():
+    p = _bar_with_ground()
+    with pytest.raises(solver.ConfigError, match="unknown linear solver 'mumps'"):
+        global_newton(p.tets, p.free, linear_solver="mumps")
