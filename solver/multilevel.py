@@ -45,13 +45,14 @@ class CoarseOperator(Enum):
 class CoarseRefresh(Enum):
     """When H_c is assembled and factorised again."""
 
-    STEP = "step"      # once per time step (and again whenever the line search fails)
     CYCLE = "cycle"    # before every coarse correction
+    STEP = "step"      # once per time step (and again whenever the line search fails)
+    KEEP = "keep"      # once, kept across time steps until a line search fails
 
 
 @dataclass(frozen=True)
 class CycleRecord:
-    """After cycle `cycle` of the current step: fine VBD sweeps so far, G in J, max_i |dG/dx_i| in N,
+    """After cycle `cycle` of the current step: fine VBD sweeps so far, G in J, max_i |f_i| in N,
     the accepted coarse step length alpha (0 when rejected) and the wall time of the step so far (s)."""
 
     cycle: int
@@ -69,12 +70,12 @@ class TwoLevelVBD:
     cells of the coarse cage (default: `coarsening` times the fine edge length per axis);
     operator: a `CoarseOperator`; refresh: a `CoarseRefresh`; pre_sweeps, post_sweeps: VBD iterations
     before and after each coarse correction; cycles: cycles per `step()`; tolerance: stop a step early
-    once max_i |dG/dx_i| falls below this fraction of its value at the initial guess.
+    once max_i |f_i| falls below this fraction of its value at the initial guess.
     """
 
     def __init__(self, sim, cage_cells=None, coarsening: int = 2,
                  operator: CoarseOperator = CoarseOperator.REDISCRETIZED,
-                 refresh: CoarseRefresh = CoarseRefresh.STEP, pre_sweeps: int = 1, post_sweeps: int = 1,
+                 refresh: CoarseRefresh = CoarseRefresh.STEP, pre_sweeps: int = 2, post_sweeps: int = 2,
                  cycles: int = 10, tolerance: Optional[float] = None):
         if not isinstance(operator, CoarseOperator):
             raise ConfigError(f"operator must be a solver.multilevel.CoarseOperator, got {operator!r}")
@@ -171,68 +172,69 @@ class TwoLevelVBD:
 
         d = P u with H_c u = -P^T g; the step length starts at the secant estimate of the minimiser
         of G along d (one extra gradient), then halves until G decreases (Armijo). G never increases.
+        Gradient and G come from the Simulation's own kernels (`residual()` = -g, `energy()`).
         """
-        problem, sim = self._problem, self.sim
+        sim = self.sim
         x = sim.positions
-        g = problem.gradient(x)
+        g = -sim.residual()
         if self._solve is None or self.refresh is CoarseRefresh.CYCLE:
             self._factorize(x)
-        alpha = self._line_search(problem, x, g)
-        if alpha == 0.0 and self.refresh is CoarseRefresh.STEP:
+        alpha = self._line_search(x, g)
+        if alpha == 0.0 and self.refresh is not CoarseRefresh.CYCLE:
             self._factorize(x)
-            alpha = self._line_search(problem, x, g)
+            alpha = self._line_search(x, g)
         return alpha
 
-    def _line_search(self, problem, x, g):
-        P3 = self.prolongation.P3
-        u = self._solve(-(P3.T @ g.ravel()))
-        d = (P3 @ u).reshape(-1, 3)
+    def _line_search(self, x, g):
+        sim, P3 = self.sim, self.prolongation.P3
+        d = (P3 @ self._solve(-(P3.T @ g.ravel()))).reshape(-1, 3)
         slope = float(g.ravel() @ d.ravel())
         if not np.isfinite(slope) or slope >= 0:
             return 0.0
-        curvature = float((problem.gradient(x + d) - g).ravel() @ d.ravel())
+        G0 = sim.energy()
+        sim.set_positions(x + d)
+        curvature = float((-sim.residual() - g).ravel() @ d.ravel())
         alpha = -slope / curvature if curvature > 0 else 1.0
-        G0 = problem.energy(x)
         for _ in range(30):
-            x_new = x + alpha * d
-            G_new = problem.energy(x_new)
+            sim.set_positions(x + alpha * d)
+            G_new = sim.energy()
             if np.isfinite(G_new) and G_new <= G0 + 1e-4 * alpha * slope:
-                self.sim.set_positions(x_new)
                 return alpha
             alpha *= 0.5
+        sim.set_positions(x)
         return 0.0
 
     def begin_step(self) -> None:
-        """Start a time step: the Simulation's begin_step (initial guess), and the coarse Hessian."""
+        """Start a time step: the Simulation's begin_step (initial guess); the coarse Hessian is
+        assembled at the first coarse correction (`CoarseRefresh.STEP`, `CYCLE`) or kept from the
+        previous step (`KEEP`)."""
         self._problem = self.sim.step_problem()
         self.sim.begin_step()
-        self._solve = None
+        if self.refresh is not CoarseRefresh.KEEP:
+            self._solve = None
         self._sweeps = 0
         self._cycle = 0
         self._start = time.perf_counter()
-        self._stop_below = None
-        g = self._problem.gradient(self.sim.positions)
-        if self.tolerance is not None:
-            self._stop_below = self.tolerance * float(np.abs(g).max())
-        self.history = [CycleRecord(0, 0, self._problem.energy(self.sim.positions), float(np.abs(g).max()),
-                                    0.0, 0.0)]
+        r = self.sim.max_residual()
+        self._stop_below = None if self.tolerance is None else self.tolerance * r
+        self.history = [CycleRecord(0, 0, self.sim.energy(), r, 0.0, 0.0)]
 
     def run_cycles(self, n: int) -> int:
         """Run up to n cycles (pre-smooth, coarse correction, post-smooth); returns how many ran."""
         if self._problem is None:
             raise ConfigError("run_cycles() needs begin_step() first")
+        sim = self.sim
         ran = 0
         for _ in range(int(n)):
-            self._sweeps += self.sim.run_iterations(self.pre_sweeps) if self.pre_sweeps else 0
+            self._sweeps += sim.run_iterations(self.pre_sweeps) if self.pre_sweeps else 0
             alpha = self.coarse_correction()
-            self._sweeps += self.sim.run_iterations(self.post_sweeps) if self.post_sweeps else 0
+            self._sweeps += sim.run_iterations(self.post_sweeps) if self.post_sweeps else 0
             self._cycle += 1
             ran += 1
-            x = self.sim.positions
-            gmax = float(np.abs(self._problem.gradient(x)).max())
-            self.history.append(CycleRecord(self._cycle, self._sweeps, self._problem.energy(x), gmax, alpha,
+            r = sim.max_residual()
+            self.history.append(CycleRecord(self._cycle, self._sweeps, sim.energy(), r, alpha,
                                             time.perf_counter() - self._start))
-            if self._stop_below is not None and gmax <= self._stop_below:
+            if self._stop_below is not None and r <= self._stop_below:
                 break
         return ran
 
