@@ -123,7 +123,7 @@ def main(argv=None):
 
     init_taichi()
     import solver
-    from solver.multilevel import TwoLevelVBD
+    from solver.multilevel import TwoLevelVBD, wave_cells
 
     os.makedirs(args.out, exist_ok=True)
     checkpoints = [k for k in (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000, 1500,
@@ -151,7 +151,8 @@ def main(argv=None):
             x_star = sim.positions
             ml.end_step()
             reference = f"two-level {args.reference_cycles} cycles"
-        base = dict(E=E, tets=mesh.n_tets, state=state, reference=reference,
+        base = dict(E=E, tets=mesh.n_tets, N_c=wave_cells(mesh, sim.material, sim.dt), state=state,
+                    reference=reference,
                     cage_cells="x".join(str(c) for c in ml.prolongation.cage_cells))
         vbd_curve(sim, x_n, v_n, x_star, checkpoints[:1])          # warm-up: compile every kernel
         two_level_curve(ml, x_n, v_n, x_star, 1)
@@ -175,7 +176,7 @@ def main(argv=None):
     plot(curves, os.path.join(args.out, FILES[2]))
     print(provenance(argv))
     print("The machine is shared (2 cores, several sessions): times are noisy; compare ratios.\n")
-    print(table(summary, ["E", "tets", "state", "method", "count_to_0.01", "seconds_to_0.01", "count_to_0.0001",
+    print(table(summary, ["E", "tets", "N_c", "state", "method", "count_to_0.01", "seconds_to_0.01", "count_to_0.0001",
                           "sweeps_to_0.0001", "seconds_to_0.0001", "final_error", "newton_seconds", "reference"],
                 title="count: cycles (two-level) or sweeps (VBD)"))
     return 0
