@@ -125,3 +125,23 @@ def test_bad_settings_raise_config_errors():
         TwoLevelVBD(sim, cage_cells=(0, 1, 1))
     with pytest.raises(solver.ConfigError, match="begin_step"):
         TwoLevelVBD(sim).run_cycles(1)
+
+
+def test_benchmark_quick_mode_writes_curves_and_refuses_to_overwrite(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    command = [sys.executable, "-m", "benchmarks.multilevel", "--quick", "--no-progress", "--out", str(tmp_path)]
+    proc = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    import csv
+
+    with open(tmp_path / "multilevel_summary.csv", newline="") as fh:
+        summary = list(csv.DictReader(fh))
+    stiff = {r["method"]: r for r in summary if float(r["E"]) == 1e6 and r["state"] == "rest"}
+    assert float(stiff["two-level VBD"]["final_error"]) < 1e-6 < float(stiff["VBD"]["final_error"])
+    assert (tmp_path / "multilevel.png").stat().st_size > 0
+    again = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 1 and "--overwrite" in again.stderr
