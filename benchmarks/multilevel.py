@@ -24,7 +24,7 @@ THRESHOLDS = (1e-2, 1e-4)
 KEPT = "two-level VBD, kept H_c"
 
 
-def prepare(sim, solver, state, frames, coarsening):
+def prepare(sim, state, frames, coarsening):
     """Put `sim` into `state`; returns (x_n, v_n)."""
     from solver.multilevel import TwoLevelVBD
 
@@ -136,7 +136,7 @@ def main(argv=None):
         sim = solver.Simulation(mesh, solver.Material(E, 0.3, 1000.0), dt=1 / 60,
                                 fixed=mesh.vertices[:, 0] < 1e-9, iterations=1)
         ml = TwoLevelVBD(sim, coarsening=args.coarsening)
-        x_n, v_n = prepare(sim, solver, state, args.frames, args.coarsening)
+        x_n, v_n = prepare(sim, state, args.frames, args.coarsening)
         load(sim, x_n, v_n)
         problem = sim.step_problem()
         newton_seconds = float("nan")

@@ -16,7 +16,7 @@ positions, weighted by how much of each cage tet the body fills, plus the exact 
 P^T (M/h^2) P and a penalty that holds the cage at the fine constrained vertices.
 
     sim = solver.Simulation(mesh, material, fixed=..., iterations=1)
-    ml = solver.multilevel.TwoLevelVBD(sim, cage_cells=(10, 2, 2))
+    ml = TwoLevelVBD(sim, cage_cells=(10, 2, 2))      # from solver.multilevel import TwoLevelVBD
     ml.step()                       # one time step of `cycles` cycles
 """
 from __future__ import annotations
@@ -66,7 +66,7 @@ class CycleRecord:
     cycle: int
     sweeps: int
     energy: float
-    max_gradient: float
+    max_residual: float
     alpha: float
     seconds: float
 
@@ -94,6 +94,8 @@ class TwoLevelVBD:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
         if int(cycles) != cycles or cycles < 1:
             raise ConfigError(f"cycles must be an integer >= 1, got {cycles!r}")
+        if tolerance is not None and not (np.isfinite(tolerance) and tolerance > 0):
+            raise ConfigError(f"tolerance must be a positive fraction or None, got {tolerance!r}")
         self.sim = sim
         self.operator = operator
         self.refresh = refresh
@@ -134,7 +136,7 @@ class TwoLevelVBD:
                                     minlength=mesh.n_vertices)
         constrained = np.flatnonzero(~self._free)
         Wc = W[constrained][:, pro.kept]
-        self._penalty_shape = (Wc, vertex_volume[constrained] ** (1 / 3))
+        self._pin_weights, self._pin_lengths = Wc, vertex_volume[constrained] ** (1 / 3)
 
     def restrict_positions(self, x: np.ndarray) -> np.ndarray:
         """(N_cage, 3) cage node positions whose interpolation best fits x (N_f, 3) (least squares,
@@ -163,8 +165,8 @@ class TwoLevelVBD:
                                    mu=problem.mu, lam=problem.lam)
         dofs = (3 * self.prolongation.kept[:, None] + np.arange(3)).ravel()
         elastic = cage_problem.hessian(self.restrict_positions(x))[dofs][:, dofs]
-        Wc, length = self._penalty_shape
-        stiffness = (problem.lam + 2 * problem.mu) * length
+        Wc = self._pin_weights
+        stiffness = (problem.lam + 2 * problem.mu) * self._pin_lengths      # N/m, about E dx
         penalty = sp.kron(Wc.T @ sp.diags(stiffness) @ Wc, sp.identity(3))
         return (inertia + elastic + penalty).tocsr()
 

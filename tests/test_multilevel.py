@@ -164,3 +164,13 @@ def test_kinematic_vertices_and_ground_contact_agree_with_newton():
     assert solver.relative_error(x, x_star, start) < 1e-7
     np.testing.assert_array_equal(x[sim.fixed_mask], start[sim.fixed_mask])
     np.testing.assert_allclose(x[right], mesh.vertices[right] + [0.0, 0.0, -0.3 / 60], atol=1e-15)
+
+
+def test_step_stops_at_the_tolerance_and_advances_the_clock():
+    sim = stiff_bar(cells=(12, 2, 2))
+    ml = TwoLevelVBD(sim, cage_cells=(6, 2, 2), cycles=60, tolerance=1e-6)
+    ml.step()
+    ran = len(ml.history) - 1
+    assert 1 < ran < 60
+    assert ml.history[-1].max_residual <= 1e-6 * ml.history[0].max_residual < ml.history[-2].max_residual
+    assert sim.frame == 1 and np.isfinite(sim.velocities).all()
