@@ -233,8 +233,8 @@ class PanelSim:
             self.ghost = None
             if self.ghost_enabled:
                 problem = self.sim.step_problem()
-                self.ghost = solver.newton_solve(problem, problem.y_with_constraints(),
-                                                 tolerance=NEWTON_TOLERANCE).x
+                self.ghost = solver.fast_newton_solve(problem, problem.y_with_constraints(),
+                                                      tolerance=NEWTON_TOLERANCE).x
             self.sim.begin_step()
             self.iteration = 0
             self.in_step = True
@@ -371,7 +371,7 @@ def _newton(problem, guess):
     start = guess if problem.energy(guess) < problem.energy(y) else y
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)    # reported in the label instead
-        result = solver.newton_solve(problem, start, tolerance=NEWTON_TOLERANCE)
+        result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE)
     return result.x, result.converged
 
 

@@ -12,19 +12,23 @@ from .backend import Precision, ensure_taichi
 from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
 from .contact import Ground
 from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
+from .global_newton import LinearSolver, fast_newton_solve
 from .material import Material
 from .mesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
+from .method import Method
 from .metrics import relative_energy_gap, relative_error
 from .newton import NewtonResult, StepProblem, newton_solve
+from .pcg import Preconditioner, newton_pcg
 from .quality import MeshQuality, det_F, inverted_count
 from .simulation import InitialGuess, IterationRecord, Simulation
 from .tetrahedralize import Mesher
 from .topology import Topology
 
 __all__ = [
-    "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "Material", "MeshError",
-    "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "NewtonResult", "Precision", "Simulation",
-    "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder", "boundary_faces", "box_mesh",
-    "color_vertices", "det_F", "ensure_taichi", "inverted_count", "is_valid_coloring", "load_mesh",
-    "newton_solve", "relative_energy_gap", "relative_error", "save_mesh", "sliver_box_mesh",
+    "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
+    "MeshError", "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "Method", "NewtonResult",
+    "Precision", "Preconditioner", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder",
+    "boundary_faces", "box_mesh", "color_vertices", "det_F", "ensure_taichi", "fast_newton_solve",
+    "inverted_count", "is_valid_coloring", "load_mesh", "newton_pcg", "newton_solve", "relative_energy_gap",
+    "relative_error", "save_mesh", "sliver_box_mesh",
 ]

@@ -34,6 +34,7 @@ from .contact import Ground
 from .errors import ConfigError, VBDError
 from .implicit_euler import InitialGuess
 from .material import Material, vertex_force_hessian
+from .method import Method, as_method, choose
 from .mesh import TetMesh
 from .todo import require_implemented
 from .topology import Topology, build_topology
@@ -114,7 +115,7 @@ def _rho(value) -> Optional[float]:
 _READ_ONLY = {
     "mesh": "the mesh", "fixed_mask": "the fixed vertices", "kinematic_mask": "the kinematic vertices",
     "free_mask": "the free vertices", "precision": "the float type", "arch": "the backend",
-    "coloring": "the colouring", "topology": "the adjacency",
+    "coloring": "the colouring", "topology": "the adjacency", "method": "the solver",
 }
 _DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
 _GUESS_REPAIR_PASSES = 10   # each pass puts the vertices of newly inverted tets back to x_n; then all
@@ -138,6 +139,11 @@ class Simulation:
     rigid-translation correction (`translation.py`), which removes the sideways drift of unconverged
     VBD; keep_orientation: never let an upright tet invert (the guess and every vertex step are
     limited, `orientation.py`; costs about a third more per iteration), for meshes with slivers;
+    method: the solver of each step, a `Method` or its name: "vbd" (default), "newton" (projected
+    Newton to convergence), "pcg" (Newton-PCG with VBD's colour sweep as preconditioner),
+    "multilevel" (two-level VBD, `iterations` fine sweeps per step in cycles of 2 + coarse + 2),
+    "auto" (chosen from N_c, see `method_reason`); the global ones minimise G, so they need
+    damping 0 and no ground friction;
     record_history: keep G and max |f_i| after every iteration of the last step in `history`.
 
     Live settings, used from the next iteration or step on: `dt`, `gravity`, `damping`, `ground`,
@@ -158,7 +164,7 @@ class Simulation:
                  kinematic_motion: Optional[Callable] = None, precision="float64", arch: str = "cpu",
                  coloring_order: VertexOrder = VertexOrder.NATURAL,
                  translation_correction: bool = True, keep_orientation: bool = False,
-                 record_history: bool = False):
+                 method=Method.VBD, record_history: bool = False):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a solver.TetMesh, got {type(mesh).__name__}; "
                               "use solver.load_mesh or solver.box_mesh")
@@ -199,6 +205,7 @@ class Simulation:
         require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.newton_step)
         if chebyshev_rho is not None:
             require_implemented(chebyshev_omega, chebyshev_update)
+        self._choose_method(method, material, dt)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
         self.topology: Topology = build_topology(mesh.vertices, mesh.tets,
                                                  np.where(self.free_mask, self.coloring.colors, -1))
@@ -209,6 +216,20 @@ class Simulation:
         self.last_iterations = 0
         self.reset()
         self._constructed = True
+
+    def _choose_method(self, method, material, dt):
+        from .multilevel import wave_cells
+
+        method = as_method(method)
+        self.wave_cells = wave_cells(self.mesh, material, float(dt))
+        self.method_reason = f"method={method.value} was asked for"
+        if method is Method.AUTO:
+            method, self.method_reason = choose(self.wave_cells)
+        if method is not Method.VBD and (self._damping > 0 or (self._ground is not None and self._ground.friction > 0)):
+            raise ConfigError(f"method={method.value!r} minimises G, which has no damping or friction; "
+                              "set damping=0 and ground friction=0, or use method='vbd'")
+        self.method = method
+        self._two_level = None
 
     def __setattr__(self, name, value):
         if name in _READ_ONLY and getattr(self, "_constructed", False):
@@ -532,11 +553,39 @@ class Simulation:
     # The time step
     # -----------------------------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
-        """Advance `n` time steps."""
+        """Advance `n` time steps with the simulation's `method`."""
         for _ in range(_count(n, "n")):
-            self.begin_step()
-            self.run_iterations(self.iterations)
-            self.end_step()
+            if self.method is Method.VBD:
+                self.begin_step()
+                self.run_iterations(self.iterations)
+                self.end_step()
+            elif self.method is Method.MULTILEVEL:
+                self._multilevel().step()
+            else:
+                self._global_step()
+
+    def _multilevel(self):
+        from .multilevel import TwoLevelVBD
+
+        cycles = max(1, self._iterations // 4)
+        if self._two_level is None or self._two_level.cycles != cycles:
+            self._two_level = TwoLevelVBD(self, cycles=cycles)
+        return self._two_level
+
+    def _global_step(self):
+        """One step minimised to convergence by the global Newton (direct or PCG), from VBD's guess."""
+        from .global_newton import fast_newton_solve
+        from .pcg import newton_pcg
+
+        problem = self.step_problem()
+        self.begin_step()
+        if self.method is Method.NEWTON:
+            result = fast_newton_solve(problem, self.positions, tolerance=1e-8)
+        else:
+            result = newton_pcg(problem.tets, problem.free).solve(problem, self.positions, tolerance=1e-8)
+        self._set_rows({L.X: result.x})
+        self.last_iterations = result.iterations
+        self.end_step()
 
     def begin_step(self) -> None:
         """Save x_n, move kinematic vertices to their targets at t + h, predict y, set the guess."""
@@ -699,12 +748,13 @@ class Simulation:
 
         x0: (N, 3) start of the Newton iterations (default y); the simulation itself is not changed.
         To measure a VBD step cheaply, build `problem = sim.step_problem()` before `sim.step()` and
-        warm-start `solver.newton_solve(problem, sim.positions)` after it.
+        warm-start `solver.fast_newton_solve(problem, sim.positions)` after it. Solved by the Taichi
+        Newton (`global_newton`); `solver.newton_solve` is its independent numpy twin.
         """
-        from .newton import newton_solve
+        from .global_newton import fast_newton_solve
 
         tolerance = _positive(tolerance, "tolerance", "(relative)")
         max_iterations = _count(max_iterations, "max_iterations")
         problem = self.step_problem()
         start = problem.y_with_constraints() if x0 is None else self._checked_state(x0, "x0")
-        return newton_solve(problem, start, tolerance, max_iterations).x
+        return fast_newton_solve(problem, start, tolerance, max_iterations).x

@@ -1,0 +1,42 @@
+"""Which solver minimises G in each time step, and how `Method.AUTO` chooses.
+
+VBD is block Gauss-Seidel: a stiff or finely meshed step, whose elastic waves cross
+N_c = h sqrt(E/rho)/dx cells (`multilevel.wave_cells`), needs about N_c^2 sweeps per decade of error
+(lecture notes, chapters 5 and 7). The global methods add the channel VBD lacks.
+"""
+from enum import Enum
+
+from .errors import ConfigError
+
+
+class Method(Enum):
+    """The solver of each time step of a `Simulation`."""
+
+    VBD = "vbd"                  # `iterations` VBD iterations (the lecture's method)
+    NEWTON = "newton"            # projected Newton to convergence, sparse direct solve (`global_newton`)
+    PCG = "pcg"                  # inexact Newton, CG preconditioned by VBD's colour sweep (`pcg`)
+    MULTILEVEL = "multilevel"    # two-level VBD: coarse-cage correction + VBD sweeps (`multilevel`)
+    AUTO = "auto"                # VBD where waves cross few cells per step, else two-level VBD
+
+
+AUTO_VBD_BELOW = 4.0   # N_c under which plain VBD converges fast enough (lecture notes, chapter 7)
+
+
+def as_method(value) -> Method:
+    """Accept a `Method` or its name ("vbd", "newton", "pcg", "multilevel", "auto")."""
+    if isinstance(value, Method):
+        return value
+    try:
+        return Method(str(value))
+    except ValueError:
+        names = ", ".join(repr(m.value) for m in Method)
+        raise ConfigError(f"unknown method {value!r}; use one of {names}") from None
+
+
+def choose(wave_cells: float) -> tuple:
+    """(method, reason) for `Method.AUTO` given N_c."""
+    if wave_cells < AUTO_VBD_BELOW:
+        return Method.VBD, (f"N_c = {wave_cells:.1f} cells per step < {AUTO_VBD_BELOW:g}: "
+                            "plain VBD carries the step in a few sweeps")
+    return Method.MULTILEVEL, (f"N_c = {wave_cells:.1f} cells per step >= {AUTO_VBD_BELOW:g}: VBD alone would "
+                               "need about N_c^2 sweeps per decade; two-level VBD adds a coarse channel")
