@@ -124,7 +124,8 @@ def main(argv=None):
 
     init_taichi()
     import solver
-    from solver.multilevel import CoarseRefresh, TwoLevelVBD, wave_cells
+    from solver.method import wave_cells
+    from solver.multilevel import CoarseRefresh, TwoLevelVBD
 
     os.makedirs(args.out, exist_ok=True)
     checkpoints = [k for k in (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000, 1500,

@@ -1,4 +1,6 @@
 """Taichi initialisation and precision handling, shared by the solver and the demo renderer."""
+import contextlib
+import sys
 import warnings
 from enum import Enum
 
@@ -54,12 +56,10 @@ def ensure_taichi(arch: str = "cpu") -> None:
             _warn(f"arch={arch!r} was asked for, but Taichi already runs on {name} in this process; "
                   f"keeping {name} (start a new process to change the backend)")
         return
-    if arch == "cpu":
-        ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)
-        return
-    ti.set_logging_level(ti.ERROR)   # keep the CUDA probe quiet; our own warning says what happened
-    if _ti.is_arch_supported(ti.cuda):
-        ti.init(arch=ti.cuda, default_fp=ti.f64, log_level=ti.WARN)
-        return
-    _warn("no CUDA GPU is available here; running on the CPU instead")
-    ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)
+    if arch == "gpu":
+        ti.set_logging_level(ti.ERROR)   # keep the CUDA probe quiet; our own warning says what happened
+        if not _ti.is_arch_supported(ti.cuda):
+            _warn("no CUDA GPU is available here; running on the CPU instead")
+            arch = "cpu"
+    with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not program output
+        ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, default_fp=ti.f64, log_level=ti.WARN)

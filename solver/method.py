@@ -1,10 +1,12 @@
 """Which solver minimises G in each time step, and how `Method.AUTO` chooses.
 
 VBD is block Gauss-Seidel: a stiff or finely meshed step, whose elastic waves cross
-N_c = h sqrt(E/rho)/dx cells (`multilevel.wave_cells`), needs about N_c^2 sweeps per decade of error
+N_c = h sqrt(E/rho)/dx cells (`wave_cells`), needs about N_c^2 sweeps per decade of error
 (lecture notes, chapters 5 and 7). The global methods add the channel VBD lacks.
 """
 from enum import Enum
+
+import numpy as np
 
 from .errors import ConfigError
 
@@ -17,6 +19,14 @@ class Method(Enum):
     PCG = "pcg"                  # inexact Newton, CG preconditioned by VBD's colour sweep (`pcg`)
     MULTILEVEL = "multilevel"    # two-level VBD: coarse-cage correction + VBD sweeps (`multilevel`)
     AUTO = "auto"                # VBD where waves cross few cells per step, else two-level VBD
+
+
+def wave_cells(mesh, material, dt: float) -> float:
+    """N_c = h sqrt(E / rho) / dx: how many cells an elastic wave crosses in one step of dt seconds
+    (dx: the mesh's typical cell size, (6 x mean tet volume)^(1/3)). VBD needs about N_c^2 sweeps per
+    decade of error, a two-level cycle about a constant (lecture notes, chapter 7)."""
+    dx = float(np.mean(mesh.rest_volumes()) * 6) ** (1 / 3)
+    return float(dt * np.sqrt(material.youngs_modulus / material.density) / dx)
 
 
 AUTO_VBD_BELOW = 4.0   # N_c under which plain VBD converges fast enough (lecture notes, chapter 7)

@@ -35,14 +35,6 @@ from .newton import StepProblem
 from .prolongation import Prolongation, cage_cells_for, cage_fill, cage_prolongation
 
 
-def wave_cells(mesh, material, dt: float) -> float:
-    """N_c = h sqrt(E / rho) / dx: how many cells an elastic wave crosses in one step of dt seconds
-    (dx: the mesh's typical cell size, (6 x mean tet volume)^(1/3)). VBD needs about N_c^2 sweeps per
-    decade of error, a two-level cycle about a constant (lecture notes, chapter 7)."""
-    dx = float(np.mean(mesh.rest_volumes()) * 6) ** (1 / 3)
-    return float(dt * np.sqrt(material.youngs_modulus / material.density) / dx)
-
-
 class CoarseOperator(Enum):
     """How the coarse Hessian H_c is built."""
 

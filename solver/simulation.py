@@ -34,7 +34,7 @@ from .contact import Ground
 from .errors import ConfigError, VBDError
 from .implicit_euler import InitialGuess
 from .material import Material, vertex_force_hessian
-from .method import Method, as_method, choose
+from .method import Method, as_method, choose, wave_cells
 from .mesh import TetMesh
 from .todo import require_implemented
 from .topology import Topology, build_topology
@@ -218,8 +218,6 @@ class Simulation:
         self._constructed = True
 
     def _choose_method(self, method, material, dt):
-        from .multilevel import wave_cells
-
         method = as_method(method)
         self.wave_cells = wave_cells(self.mesh, material, float(dt))
         self.method_reason = f"method={method.value} was asked for"
