@@ -21,7 +21,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import ROOT, init_taichi, parser, progress, provenance, table, write_csv
+from benchmarks.common import ROOT, init_taichi, output_folder, parser, progress, provenance, table, write_csv
 
 MESHES = ("bunny", "bunny_slivers", "bunny_slivers_repaired", "sliver_box")
 COLUMNS = ["mesh", "tets", "slivers", "method", "step", "time", "inverted", "min_det_F", "inverted_at_y",
@@ -137,15 +137,10 @@ def main(argv=None):
     p.add_argument("--dt", type=float, default=1 / 60, help="time step in s")
     p.add_argument("--pinned-fraction", type=float, default=0.05, help="fraction of vertices pinned (the highest)")
     p.add_argument("--threads", type=int, default=None, help="Taichi CPU threads (default: all)")
-    p.add_argument("--overwrite", action="store_true", help="replace results left in --out by an earlier run")
     args = p.parse_args(argv)
     if args.quick:
         args.meshes, args.steps = ["sliver_box"], 5
-    existing = [f for f in OUTPUTS if os.path.exists(os.path.join(args.out, f))]
-    if existing and not args.overwrite:
-        print(f"{os.path.join(args.out, existing[0])} already exists; pass --overwrite to replace it or "
-              "--out to choose another folder", file=sys.stderr)
-        return 1
+    output_folder(args, OUTPUTS)
     init_taichi(args.threads)
     rows = []
     os.makedirs(args.out, exist_ok=True)

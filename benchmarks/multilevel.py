@@ -17,7 +17,8 @@ import time
 
 import numpy as np
 
-from benchmarks.common import init_taichi, parser, progress, provenance, table, time_to_reach, write_csv
+from benchmarks.common import (init_taichi, output_folder, parser, progress, provenance, table, time_to_reach,
+                               write_csv)
 
 FILES = ("multilevel.csv", "multilevel_summary.csv", "multilevel.png", "summary.md")
 THRESHOLDS = (1e-2, 1e-4)
@@ -111,16 +112,11 @@ def main(argv=None):
     p.add_argument("--newton-max-tets", type=int, default=40000,
                    help="largest mesh with a numpy Newton reference; above, two-level run to convergence")
     p.add_argument("--reference-cycles", type=int, default=40, help="two-level cycles of the stand-in reference")
-    p.add_argument("--overwrite", action="store_true", help="replace existing result files in --out")
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.moduli, args.states = [2], [1e6, 1e4], ["rest", "moving"]
         args.cycles, args.max_sweeps, args.frames, args.repeats = 12, 300, 2, 1
-    existing = [f for f in FILES if os.path.exists(os.path.join(args.out, f))]
-    if existing and not args.overwrite:
-        print(f"error: {os.path.join(args.out, existing[0])} exists; pass --overwrite or choose another --out",
-              file=sys.stderr)
-        return 1
+    output_folder(args, FILES)
 
     init_taichi()
     import solver

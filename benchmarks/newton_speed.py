@@ -23,7 +23,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import init_taichi, parser, provenance, table, time_to_reach, write_csv
+from benchmarks.common import init_taichi, output_folder, parser, provenance, table, time_to_reach, write_csv
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
@@ -202,13 +202,8 @@ def main(argv=None):
     p.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
     p.add_argument("--budget", type=float, default=30.0, help="seconds per method and case in section 3")
     p.add_argument("--threads", type=int, default=None, help="CPU threads for Taichi (default: all)")
-    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier run in --out")
     args = p.parse_args(argv)
-    existing = [f for f in FILES if os.path.exists(os.path.join(args.out, f))]
-    if existing and not args.overwrite:
-        print(f"error: {os.path.join(args.out, existing[0])} already exists; pass --overwrite to replace it "
-              "or --out to choose another folder", file=sys.stderr)
-        return 2
+    output_folder(args, FILES)
     init_taichi(args.threads)
     direct = [name for name in solvers() if name.startswith("Newton (")]
     every = list(solvers())

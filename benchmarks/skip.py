@@ -43,7 +43,7 @@ def profiled_kernels(run):
     prof._count_statistics()
     counts = {}
     for name, stat in prof._statistical_results.items():
-        base = re.sub(r"_c\d+_\d+.*$", "", name)           # "_solve_color_c80_0_kernel_0_range_for" -> "_solve_color"
+        base = re.sub(r"_c\d+_\d+.*$", "", name)           # "vbd_iteration_c80_0_kernel_0_range_for" -> "vbd_iteration"
         counts[base] = max(counts.get(base, 0), stat.counter)
     return counts
 

@@ -124,7 +124,7 @@ TASKS = (
         depends=("force_hessian", "coloring", "vbd_sweep"),
         details="Return the weights `omega_1 = 1`, `omega_2 = 2/(2 - rho^2)`, "
                 "`omega_k = 4/(4 - rho^2 omega_(k-1))` and apply the over-relaxation step to every free vertex, "
-                "keeping `state[X_PREV, i]` = x^(k-1) and `state[X_PREV2, i]` = x^(k-2) up to date (chapter 6, "
+                "keeping the history rows `X_PREV` = x^(k-1) and `X_PREV2` = x^(k-2) of `state` up to date (chapter 6, "
                 "\"Chebyshev acceleration\").",
         notes={"chebyshev_update": ["Update x^(k-2) <- x^(k-1) and x^(k-1) <- the accelerated x as well."]},
     ),

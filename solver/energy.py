@@ -28,11 +28,11 @@ def incremental_potential(state: ti.types.ndarray(), mass: ti.types.ndarray(), f
                           params: ti.types.ndarray()) -> ti.f64:
     """G(x) in J at the current positions x for the current step's y."""
     G = ti.cast(0.0, ti.f64)
-    h = params[TIME_STEP]
+    inv_h2 = 1 / params[TIME_STEP] ** 2
     for i in range(state.shape[1]):
         if free[i]:
             d = state[X, i] - state[Y, i]
-            G += ti.cast(0.5 * mass[i] / (h * h) * d.dot(d), ti.f64)
+            G += ti.cast(inv_h2 * mass[i] * d.dot(d) / 2, ti.f64)
             if params[GROUND] > 0:
                 G += ti.cast(ground_energy(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS]), ti.f64)
     for t in range(tets.shape[0]):

@@ -28,11 +28,11 @@ def translation_system(state: ti.types.ndarray(), mass: ti.types.ndarray(), colo
     """
     out[0] = ti.Vector.zero(ti.f64, 3)
     out[1] = ti.Vector.zero(ti.f64, 3)
-    h = params[TIME_STEP]
+    inv_h2 = 1 / params[TIME_STEP] ** 2
     for k in range(color_order.shape[0]):
         i = color_order[k]
         f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-        K = ti.Vector([1, 1, 1], dt=dtype) * mass[i] / (h * h)
+        K = ti.Vector([1, 1, 1], dt=dtype) * (inv_h2 * mass[i])
         if params[GROUND] > 0 and state[X, i][2] < params[GROUND_HEIGHT]:
             K[2] += params[GROUND_STIFFNESS]
         out[0] += ti.cast(f, ti.f64)

@@ -85,7 +85,7 @@ def test_skip_quick(tmp_path):
     for r in data:
         by_check.setdefault(r["check"], []).append(r)
     plain = [r for r in by_check["kernels per step (10 iterations)"] if r["scene"] == "plain"][0]
-    assert "chebyshev" not in plain["value"].lower() and "_solve_color" in plain["value"]
+    assert "chebyshev" not in plain["value"].lower() and "vbd_iteration" in plain["value"]
     cheb = [r for r in by_check["kernels per step (10 iterations)"] if r["scene"] == "Chebyshev"][0]
     assert "_chebyshev: 10" in cheb["value"]
     assert by_check["fixed vertices"][0]["ok"] == "True"

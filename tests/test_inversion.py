@@ -86,4 +86,4 @@ def test_inversion_benchmark_quick_writes_its_csv_and_refuses_to_overwrite(tmp_p
     assert all(float(r["min_det_F"]) > 0 for r in newton)
     assert (tmp_path / "inversion.png").stat().st_size > 0
     again = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
-    assert again.returncode == 1 and "--overwrite" in again.stderr
+    assert again.returncode == 2 and "--overwrite" in again.stderr

@@ -144,7 +144,7 @@ def test_benchmark_quick_mode_writes_curves_and_refuses_to_overwrite(tmp_path):
     assert float(stiff["two-level VBD"]["final_error"]) < 1e-6 < float(stiff["VBD"]["final_error"])
     assert (tmp_path / "multilevel.png").stat().st_size > 0
     again = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=600)
-    assert again.returncode == 1 and "--overwrite" in again.stderr
+    assert again.returncode == 2 and "--overwrite" in again.stderr
 
 
 def test_kinematic_vertices_and_ground_contact_agree_with_newton():
