@@ -33,7 +33,8 @@ OUTPUTS = ("throughput.csv", "scaling_fit.csv", "throughput.png", "summary.md")
 FLOPS_PER_ENTRY = 105      # per (vertex, tet) pair: kinematics ~48, force ~14, Hessian ~31, sums 12
 FLOPS_PER_VERTEX = 80      # inertia terms, determinant, 3x3 inverse and product
 COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_per_tet_iter",
-           "ms_per_iter", "iterations_timed", "coloring_s", "setup_s", "probe_ns_per_tet_iter",
+           "ms_per_iter", "iterations_timed", "coloring_s", "setup_s", "first_iteration_s", "second_setup_s",
+           "probe_ns_per_tet_iter",
            "arith_floor_ns_per_tet_iter", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s",
            "newton_ns_per_tet"]
 
@@ -128,7 +129,16 @@ def worker(args):
             t = time.perf_counter()
             sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=1, precision=precision)
             setup_s = time.perf_counter() - t - sim.coloring.seconds
+            t = time.perf_counter()
             sim.begin_step()
+            sim.run_iterations(1)
+            first_iteration_s = time.perf_counter() - t        # the kernels' JIT compile, first time only
+            t = time.perf_counter()
+            again = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=1, precision=precision)
+            again.begin_step()
+            again.run_iterations(1)
+            second_setup_s = time.perf_counter() - t           # same mesh and settings: nothing to build
+            del again
             sec, k = seconds_per_call(sim.run_iterations, args.min_seconds)
             probe = MemoryProbe(sim)
             probe_sec, _ = seconds_per_call(probe.iterate, args.min_seconds)
@@ -137,7 +147,8 @@ def worker(args):
             row = dict(tets=mesh.n_tets, vertices=mesh.n_vertices, cells="x".join(map(str, cells)),
                        precision=precision, threads=args.threads, n_colors=sim.n_colors,
                        ns_per_tet_iter=sec / mesh.n_tets * 1e9, ms_per_iter=sec * 1e3, iterations_timed=k,
-                       coloring_s=coloring_s, setup_s=setup_s,
+                       coloring_s=coloring_s, setup_s=setup_s, first_iteration_s=first_iteration_s,
+                       second_setup_s=second_setup_s,
                        probe_ns_per_tet_iter=probe_sec / mesh.n_tets * 1e9,
                        arith_floor_ns_per_tet_iter=flops / rates[precision] / mesh.n_tets * 1e9,
                        flop_rate=rates[precision], flops_per_tet=flops / mesh.n_tets,
@@ -250,8 +261,8 @@ def argparse_hidden():
 
 def report(rows, fits):
     cols = ["tets", "precision", "threads", "n_colors", "ns_per_tet_iter", "ms_per_iter",
-            "probe_ns_per_tet_iter", "arith_floor_ns_per_tet_iter", "coloring_s", "setup_s",
-            "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s"]
+            "probe_ns_per_tet_iter", "arith_floor_ns_per_tet_iter", "coloring_s", "setup_s", "first_iteration_s",
+            "second_setup_s", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s"]
     fmt = {"ns_per_tet_iter": lambda v: f"{v:.1f}", "probe_ns_per_tet_iter": lambda v: f"{v:.1f}",
            "arith_floor_ns_per_tet_iter": lambda v: f"{v:.1f}", "numpy_ns_per_tet_iter": lambda v: f"{v:.0f}",
            "numpy_speedup": lambda v: f"{v:.0f}x"}

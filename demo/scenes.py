@@ -265,8 +265,8 @@ SCENES = {scene.name: scene for scene in [
                       iterations=40, show_drift=True),),
         camera=Camera(eye=(0.0, -1.25, 0.55), target=(0.0, 0.0, 0.3), fov_degrees=38.0),
         ground=solver.Ground(height=0.0, stiffness=1e5, friction=0.5), grid=GridPlane(), frames=90,
-        notes=("unconverged steps do not conserve momentum: the solver's translation correction keeps the "
-               "sideways drift near 1.5 cm in 1.5 s (31 cm without it); the label shows any drift over 1 cm",),
+        notes=("unconverged steps do not conserve momentum; the translation correction keeps the drift near "
+               "1.5 cm (31 without)",),
     ),
     Scene(
         name="twist",
