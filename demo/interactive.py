@@ -307,7 +307,7 @@ class InteractiveApp:
         line = f"panel {index + 1}: {p.label}, t = {p.sim.time:.2f} s"
         if p.error is not None and self.show_ghost:
             line += f", error {p.error:.3f}"
-        lines = [line] + ([p.failure] if p.failure else [])
+        lines = [line] + p.remarks()
         return [packed for i, line in enumerate(lines) for packed in _wrap(line, width, first_indent=i > 0)]
 
     def _upload(self):
