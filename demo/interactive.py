@@ -5,7 +5,7 @@ tests all drive the same code. ``InteractiveApp(..., show_window=False)`` runs o
 
 Every panel keeps its own settings (``runner.PanelSettings``): the sliders change the panel chosen
 under "edit" (or every panel, each keeping its other settings), always through ``PanelSim.apply``,
-and each panel's line in the controls names its current settings once they differ from the scene's.
+and each panel's line along the bottom names its current settings once they differ from the scene's.
 """
 import dataclasses
 import math
