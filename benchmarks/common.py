@@ -26,7 +26,7 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Adds "(default: ...)" to an option's help unless the help already says its default."""
 
     def _get_help_string(self, action):
-        if "default" in (action.help or "") or action.default is None or isinstance(action.default, bool):
+        if "default" in (action.help or "") or action.default in (None, "") or isinstance(action.default, bool):
             return action.help
         return super()._get_help_string(action)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import output_folder, parser, positive, quiet_taichi_banner
+from benchmarks.common import output_folder, parser, positive, progress, quiet_taichi_banner
 
 OUTPUTS = ("render_speed.csv", "render_speed_frame.png")
 
@@ -81,7 +81,7 @@ def main(argv=None):
     vertex_colours = colours.sequential(t)
 
     rows = []
-    for frame in range(args.frames + 1):
+    for frame in progress(range(args.frames + 1), desc="render_speed", disable=args.no_progress):
         x = rest.copy()
         x[:, 2] += 0.1 * np.sin(3.0 * x[:, 0] + 0.2 * frame)
         body = Body(x, faces, vertex_colours, ghost_positions=x + (0.0, 0.0, 0.05))

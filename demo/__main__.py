@@ -3,7 +3,6 @@
 With no command it renders the default scene (the stiffness sweep) headless into
 ``out/stiffness_sweep/``: numbered PNG frames and an mp4.
 """
-import argparse
 import os
 import re
 import sys

@@ -5,7 +5,7 @@ tests all drive the same code. ``InteractiveApp(..., show_window=False)`` runs o
 
 Every panel keeps its own settings (``runner.PanelSettings``): the sliders change the panel chosen
 under "edit" (or every panel, each keeping its other settings), always through ``PanelSim.apply``,
-and each panel's line in the controls names its current settings once they differ from the scene's.
+and each panel's line along the bottom names its current settings once they differ from the scene's.
 """
 import dataclasses
 import math
@@ -307,7 +307,7 @@ class InteractiveApp:
         line = f"panel {index + 1}: {p.label}, t = {p.sim.time:.2f} s"
         if p.error is not None and self.show_ghost:
             line += f", error {p.error:.3f}"
-        lines = [line] + ([p.failure] if p.failure else [])
+        lines = [line] + p.remarks()
         return [packed for i, line in enumerate(lines) for packed in _wrap(line, width, first_indent=i > 0)]
 
     def _upload(self):

@@ -268,6 +268,17 @@ class PanelSim:
             moved = moved - (moved @ g) * g
         return float(np.linalg.norm(moved))
 
+    def remarks(self):
+        """Label lines about what went wrong: a measured sideways drift, a divergence."""
+        lines = []
+        if self.panel.show_drift:
+            drift = self.drift()
+            if drift >= DRIFT_SHOWN:
+                lines.append(f"drifted {100 * drift:.0f} cm sideways: the unconverged steps do not conserve momentum")
+        if self.failure is not None:
+            lines.append(self.failure)
+        return lines
+
     def state(self):
         x = self.sim.positions
         by, lo_hi = self.scene.colour_by, self.scene.colour_range
@@ -296,14 +307,9 @@ class PanelSim:
         if self.error is not None:
             unsure = "" if self.error_converged else " (Newton not converged: approximate)"
             lines.append(f"relative error {self.error:.3f}{unsure}")
-        if self.panel.show_drift:
-            drift = self.drift()
-            if drift >= DRIFT_SHOWN:
-                lines.append(f"drifted {100 * drift:.0f} cm sideways: the unconverged steps do not conserve momentum")
         if self.panel.show_inverted:
             lines.append(f"inverted tets: {self.sim.inverted_count()}")
-        if self.failure is not None:
-            lines.append(self.failure)
+        lines += self.remarks()
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap)
 
 
