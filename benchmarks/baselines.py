@@ -8,7 +8,8 @@
   write without Taichi. It reads the simulation's adjacency arrays once and then works only on numpy.
 """
 import numpy as np
-import taichi as ti
+
+from solver._ti import ti
 
 from solver.layout import X
 from solver.vertex_solve import force_hessian

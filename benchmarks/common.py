@@ -113,7 +113,7 @@ def quiet_taichi_banner():
 def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     """ti.init on the CPU in float64, optionally with a thread cap and the kernel profiler."""
     quiet_taichi_banner()
-    import taichi as ti
+    from solver._ti import ti
 
     kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)
     if threads:

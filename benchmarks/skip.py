@@ -31,14 +31,13 @@ OUTPUTS = ("skip.csv", "skip.png", "summary.md")
 
 def profiled_kernels(run):
     """{kernel name: launches} of everything `run()` launches (Taichi kernel profiler, CPU)."""
-    import taichi as ti
-    from taichi.profiler.kernel_profiler import get_default_kernel_profiler
+    from solver._ti import ti
 
     ti.sync()
     ti.profiler.clear_kernel_profiler_info()
     run()
     ti.sync()
-    prof = get_default_kernel_profiler()
+    prof = ti.profiler.kernel_profiler.get_default_kernel_profiler()
     prof._update_records()
     prof._count_statistics()
     counts = {}

@@ -40,7 +40,7 @@ COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_
 
 
 def _probe_class():
-    import taichi as ti
+    from solver._ti import ti
 
     from solver.layout import X, Y
 
@@ -79,7 +79,7 @@ def _probe_class():
 def _flop_rate(dtype, min_seconds):
     """Floating-point operations per second of a compute-bound Taichi kernel (dependent FMA chains
     on 3-vectors, many independent threads)."""
-    import taichi as ti
+    from solver._ti import ti
 
     n = 1 << 14
     out = ti.field(dtype, n)
