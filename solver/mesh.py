@@ -107,8 +107,19 @@ class TetMesh:
             keep |= glue
         if not keep.any():
             raise MeshError(f"all {self.n_tets} tets are slivers (radius ratio < {sliver_radius_ratio:g}); "
-                            "remesh the surface instead")
+                            "remesh it with .remeshed() instead (needs pytetwild)")
         return TetMesh(self.vertices, self.tets[keep], self.original_index)
+
+    def remeshed(self, edge_length: float = None) -> "TetMesh":
+        """New well-shaped tets filling this mesh's boundary surface, made by fTetWild (optional
+        pytetwild, `solver.tetrahedralize`); edge_length in metres, default 1/20 of the diagonal.
+        The vertices are new: `original_index` numbers them 0..N-1."""
+        used = np.unique(self.boundary_faces())
+        remap = np.full(self.n_vertices, -1)
+        remap[used] = np.arange(len(used))
+        vertices, tets = tetwild_tets(self.vertices[used], remap[self.boundary_faces()], edge_length,
+                                      name="the mesh's boundary")
+        return TetMesh(vertices, without_degenerate(vertices, tets))
 
     def topology_key(self) -> str:
         """A hash of the connectivity (not the positions): the key of the colouring cache."""
@@ -329,8 +340,9 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
         mesh = mesh.without_slivers()
     quality = mesh.quality()
     if quality.n_slivers:
-        fix = ("they hold the mesh together, so repair kept them; remesh its surface with mesher='tetwild'"
-               if repair else "load it with repair=True to drop them, or remesh its surface with mesher='tetwild'")
+        fix = ("they hold the mesh together, so repair kept them; remesh it with .remeshed() (needs pytetwild)"
+               if repair else "load it with repair=True to drop them, or remesh it with .remeshed() "
+               "(needs pytetwild)")
         warnings.warn(f"{path}: {quality.summary()}; slivers can invert under load: simulate it with "
                       f"Simulation(..., keep_orientation=True), or {fix}",
                       MeshQualityWarning, stacklevel=2)

@@ -66,3 +66,19 @@ def test_a_dropped_cow_lands_on_the_ground():
     assert min(lowest) < 0.005                 # it reached the ground ...
     assert min(lowest) > -0.01                 # ... and did not sink through it (penalty contact)
     assert sim.positions[:, 2].max() > 0.1     # a soft cow slumps on its legs but is not flattened
+
+
+def test_newton_converges_on_a_real_mesh_and_vbd_approaches_it():
+    mesh = _load("bunny.vtu")
+    top = mesh.vertices[:, 2] >= np.quantile(mesh.vertices[:, 2], 0.95)
+    sim = solver.Simulation(mesh, MATERIAL, dt=1 / 60, fixed=top, iterations=50)
+    problem, x_n = sim.step_problem(), sim.positions
+    newton = solver.newton_solve(problem, problem.y_with_constraints(), tolerance=1e-8)
+    assert newton.converged and newton.iterations <= 15
+    errors = []
+    for iterations in (50, 200):
+        sim.reset()
+        sim.iterations = iterations
+        sim.step()
+        errors.append(solver.relative_error(sim.positions, newton.x, x_n))
+    assert errors[1] < errors[0] < 0.5          # VBD heads for the converged step, slowly

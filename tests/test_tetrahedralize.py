@@ -90,3 +90,12 @@ def test_voxelised_bunny_is_one_face_connected_body():
         mesh = solver.load_mesh(path, resolution=8)
     assert mesh.n_tets == 618 - 4 * 6
     assert (face_components(mesh.tets) == 0).all()
+
+
+@needs_tetwild
+def test_remeshing_a_sliver_mesh_gives_well_shaped_tets_of_the_same_volume(tmp_path, monkeypatch):
+    monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
+    bad = solver.sliver_box_mesh()
+    good = bad.remeshed(edge_length=0.05)
+    assert good.quality().n_slivers == 0
+    assert good.rest_volumes().sum() == pytest.approx(bad.rest_volumes().sum(), rel=0.02)
