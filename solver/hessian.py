@@ -93,6 +93,51 @@ def _sym_eig3(A):
 
 
 @ti.func
+def _unit_orthogonal(u):
+    """A unit vector orthogonal to the unit vector u."""
+    axis = ti.Vector([1.0, 0.0, 0.0])
+    if ti.abs(u[0]) > 0.5:
+        axis = ti.Vector([0.0, 1.0, 0.0])
+    w = u.cross(axis)
+    return w / w.norm()
+
+
+@ti.func
+def _svd3(F):
+    """F = U diag(s) V^T with U, V rotations, s0 >= s1 >= |s2| (s2 < 0 for an inverted F), from the
+    Jacobi eigendecomposition of F^T F: V and s0, s1 from it, U's columns F v_i / s_i and u0 x u1.
+    (Taichi's own ti.svd reconstructs F only to ~1e-10 in float64 and is slow to compile.)"""
+    evals, V = _sym_eig3(F.transpose() @ F)
+    for _ in range(2):                           # sort the eigenpairs by decreasing eigenvalue
+        for a in range(2):
+            if evals[a] < evals[a + 1]:
+                evals[a], evals[a + 1] = evals[a + 1], evals[a]
+                for r in range(3):
+                    V[r, a], V[r, a + 1] = V[r, a + 1], V[r, a]
+    if V.determinant() < 0.0:
+        for r in range(3):
+            V[r, 2] = -V[r, 2]
+    v0 = ti.Vector([V[0, 0], V[1, 0], V[2, 0]])
+    v1 = ti.Vector([V[0, 1], V[1, 1], V[2, 1]])
+    v2 = ti.Vector([V[0, 2], V[1, 2], V[2, 2]])
+    u0 = F @ v0
+    if u0.norm() > 1e-150:
+        u0 /= u0.norm()
+    else:
+        u0 = ti.Vector([1.0, 0.0, 0.0])
+    u1 = F @ v1
+    u1 -= u1.dot(u0) * u0
+    if u1.norm() > 1e-12 * ti.sqrt(ti.max(evals[0], 0.0)) and u1.norm() > 1e-150:
+        u1 /= u1.norm()
+    else:
+        u1 = _unit_orthogonal(u0)
+    u2 = u0.cross(u1)
+    U = ti.Matrix.cols([u0, u1, u2])
+    s = ti.Vector([u0.dot(F @ v0), u1.dot(F @ v1), u2.dot(F @ v2)])
+    return U, s, V
+
+
+@ti.func
 def _levi_civita(i, j, k):
     return (i - j) * (j - k) * (k - i) // 2
 
@@ -103,9 +148,7 @@ def _eigensystem(F, mu, lam, t, eigenvalues: ti.template(), eigenvectors: ti.tem
     Frobenius norm), q < 6 twist/flip of the pairs, q >= 6 scaling."""
     alpha = 1.0 + mu / lam
     scale = lam * (F.determinant() - alpha)
-    U, _, V = ti.svd(F, ti.f64)
-    S = U.transpose() @ F @ V          # diagonal up to round-off; its diagonal is accurate
-    s = ti.Vector([S[0, 0], S[1, 1], S[2, 2]])
+    U, s, V = _svd3(F)
     for q in range(6):                 # twist (even q) and flip (odd q) of the pair (i, j)
         k = q // 2
         i = 1 if k == 0 else 0

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import solver
-from solver.global_newton import DirectSolver, LinearSolver, fast_newton_solve, global_newton
+from solver.global_newton import DirectSolver, GlobalNewton, LinearSolver, fast_newton_solve, global_newton
 from solver.hessian import HessianPattern, StepKernels
 
 
@@ -150,3 +150,17 @@ def test_unknown_linear_solver_is_a_config_error():
     p = _bar_with_ground()
     with pytest.raises(solver.ConfigError, match="unknown linear solver 'mumps'"):
         global_newton(p.tets, p.free, linear_solver="mumps")
+
+
+def test_a_solver_giving_no_descent_direction_warns_and_falls_back(monkeypatch):
+    """If the factorisation returns a direction along which G increases (as for a Hessian that is
+    not positive definite), the step warns, retries with SuperLU, and still converges to x*."""
+    p = _bar_with_ground()
+    x0 = p.y_with_constraints()
+    ref = solver.newton_solve(p, x0, tolerance=1e-12)
+    newton = GlobalNewton(p.tets, p.free, LinearSolver.QDLDL)
+    monkeypatch.setattr(newton.direct, "solve", lambda rhs: -rhs)      # an ascent direction: d = +g
+    with pytest.warns(UserWarning, match="not positive definite.*retrying with SuperLU"):
+        result = newton.solve(p, x0, tolerance=1e-12)
+    assert result.converged
+    assert np.abs(result.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()

@@ -20,13 +20,13 @@ def problem():
 
 @pytest.fixture(scope="module")
 def state(problem):
-    """(solver, kernels, x): stress Hessians and diagonal blocks computed at a perturbed x."""
+    """(solver, kernels, x): stress Hessians, assembled Hessian and diagonal blocks at a perturbed x."""
     p = problem
     pcg = NewtonPCG(p.tets, p.free, Preconditioner.COLOR_SWEEP)
     kernels = StepKernels(pcg.pattern, p)
     rng = np.random.default_rng(0)
     x = np.ascontiguousarray(p.y_with_constraints() + 0.01 * rng.standard_normal(p.y.shape) * p.free[:, None])
-    kernels.stress_hessians(x)
+    kernels.hessian(x)
     inverse_diagonal_blocks_kernel(pcg.pattern.A9, p.tets.astype(np.int32), kernels.grad_rows, kernels.volumes,
                                    kernels.masses, pcg.pattern.free_int, x, kernels.h, *kernels.ground, pcg.D_inv)
     return pcg, kernels, x
