@@ -66,7 +66,8 @@ class CycleRecord:
 class TwoLevelVBD:
     """Two-level cycles around a `Simulation`'s VBD sweeps.
 
-    sim: the Simulation (damping 0, no ground friction: the coarse step minimises G); cage_cells: (3,)
+    sim: the Simulation (damping 0, no ground friction, no Chebyshev: the coarse step minimises G; its
+    `iterations` are not used, the cycle runs its own sweeps); cage_cells: (3,)
     cells of the coarse cage (default: `coarsening` times the fine edge length per axis);
     operator: a `CoarseOperator`; refresh: a `CoarseRefresh`; pre_sweeps, post_sweeps: VBD iterations
     before and after each coarse correction; cycles: cycles per `step()`; tolerance: stop a step early
@@ -217,6 +218,9 @@ class TwoLevelVBD:
         """Start a time step: the Simulation's begin_step (initial guess); the coarse Hessian is
         assembled at the first coarse correction (`CoarseRefresh.STEP`, `CYCLE`) or kept from the
         previous step (`KEEP`)."""
+        if self.sim.chebyshev_rho is not None:
+            raise ConfigError("two-level VBD needs chebyshev_rho=None on the Simulation: Chebyshev's "
+                              "extrapolation from earlier iterates would undo the coarse step")
         self._problem = self.sim.step_problem()
         self.sim.begin_step()
         if self.refresh is not CoarseRefresh.KEEP:

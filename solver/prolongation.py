@@ -51,10 +51,6 @@ class Prolongation:
         """(N_c, 3) coarse displacements -> (N_f, 3) fine displacements P u_c."""
         return self.P @ u_c
 
-    def restrict(self, r: np.ndarray) -> np.ndarray:
-        """(N_f, 3) fine forces or gradients -> (N_c, 3) coarse ones P^T r."""
-        return self.P.T @ r
-
 
 def cage_cells_for(mesh: TetMesh, coarsening: int) -> np.ndarray:
     """(3,) cage cells: the fine mesh's typical cell size times `coarsening` per axis, but at least

@@ -125,6 +125,9 @@ def test_bad_settings_raise_config_errors():
         TwoLevelVBD(sim, cage_cells=(0, 1, 1))
     with pytest.raises(solver.ConfigError, match="begin_step"):
         TwoLevelVBD(sim).run_cycles(1)
+    sim.chebyshev_rho = 0.9
+    with pytest.raises(solver.ConfigError, match="chebyshev_rho=None"):
+        TwoLevelVBD(sim).step()
 
 
 def test_benchmark_quick_mode_writes_curves_and_refuses_to_overwrite(tmp_path):
