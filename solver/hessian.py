@@ -27,7 +27,9 @@ import math
 
 import numpy as np
 import scipy.sparse as sp
-import taichi as ti
+
+from ._ti import ti
+from .material import cofactor
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 _PAIRS = ((1, 2, 0), (0, 2, 1), (0, 1, 2))    # (i, j, k): the pair and the third index
@@ -51,14 +53,6 @@ def _deformation_gradient(x: ti.template(), tets: ti.template(), grad_rows: ti.t
     for k in ti.static(range(4)):
         F += _vec3(x, tets[t, k]).outer_product(_grad_row(grad_rows, t, k))
     return F
-
-
-@ti.func
-def _cofactor(F):
-    f0 = ti.Vector([F[0, 0], F[1, 0], F[2, 0]])
-    f1 = ti.Vector([F[0, 1], F[1, 1], F[2, 1]])
-    f2 = ti.Vector([F[0, 2], F[1, 2], F[2, 2]])
-    return ti.Matrix.cols([f1.cross(f2), f2.cross(f0), f0.cross(f1)])
 
 
 @ti.func
@@ -190,7 +184,7 @@ def stress_hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_
         F = _deformation_gradient(x, tets, grad_rows, t)
         alpha = 1.0 + mu / lam
         scale = lam * (F.determinant() - alpha)
-        C = _cofactor(F)
+        C = cofactor(F)
         negative = ti.Vector.zero(ti.i32, 9)
         n_negative = 0
         for q in range(9):
@@ -251,7 +245,7 @@ def gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types
             g[i, c] = 0.0
     for t in range(tets.shape[0]):
         F = _deformation_gradient(x, tets, grad_rows, t)
-        P = mu * F + lam * (F.determinant() - alpha) * _cofactor(F)
+        P = mu * F + lam * (F.determinant() - alpha) * cofactor(F)
         for k in ti.static(range(4)):
             v = tets[t, k]
             if free[v] != 0:

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from enum import Enum
 
 import numpy as np
-import taichi as ti
 
+from ._ti import ti
 from .backend import ensure_taichi
 from .coloring import color_vertices
 from .errors import ConfigError

@@ -239,7 +239,7 @@ class Simulation:
     # Set-up: everything is allocated and uploaded once, here.
     # -----------------------------------------------------------------------------------------
     def _allocate(self):
-        mesh, top = self.mesh, self.topology
+        mesh = self.mesh
         dtype = self.dtype = self.precision.ti_dtype
         self._np_dtype = np.float64 if dtype == ti.f64 else np.float32
         n, m = mesh.n_vertices, mesh.n_tets
