@@ -64,13 +64,15 @@ def test_throughput_quick(tmp_path):
     run_quick("throughput", tmp_path)
     data = rows(tmp_path / "throughput.csv")
     assert {"tets", "precision", "threads", "n_colors", "ns_per_tet_iter", "coloring_s", "setup_s",
-            "numpy_ns_per_tet_iter", "newton_iter_s"} <= set(data[0])
+            "numpy_ns_per_tet_iter", "newton_iter_s", "fast_newton_iter_s"} <= set(data[0])
     assert {(r["precision"], r["threads"]) for r in data} == {("float64", "1"), ("float64", "2"),
                                                               ("float32", "1"), ("float32", "2")}
     for r in data:
         assert 4 <= int(r["n_colors"]) <= 64
         assert float(r["ns_per_tet_iter"]) > 0 and math.isfinite(float(r["ns_per_tet_iter"]))
     assert any(r["numpy_ns_per_tet_iter"] for r in data)
+    newton = [r for r in data if r["fast_newton_iter_s"]]
+    assert newton and all(float(r["fast_newton_iter_s"]) > 0 and float(r["newton_iter_s"]) > 0 for r in newton)
     fits = rows(tmp_path / "scaling_fit.csv")
     assert all(math.isfinite(float(f["exponent_all"])) for f in fits)
     assert (tmp_path / "throughput.png").exists()
