@@ -191,11 +191,17 @@ class PanelSim:
         return float(np.median(samples[1:]))
 
     def match_wall_time(self, seconds):
-        """Give this panel as many iterations per step as fit in ``seconds`` of wall time: scale the
-        iteration count by budget / measured time per step, twice (a step also has a fixed cost)."""
-        for _ in range(2):
-            iterations = self.sim.iterations * seconds / self.seconds_per_step()
-            self.sim.iterations = max(1, int(round(iterations)))
+        """Give this panel as many iterations per step as fit in ``seconds`` of wall time. A step costs
+        a + b x iterations: measured at the panel's iterations n1 and at n2 = n1 x budget / time(n1),
+        then solved for a + b n = budget (n2 if the two measurements give no positive slope)."""
+        n1 = self.sim.iterations
+        t1 = self.seconds_per_step()
+        n2 = max(1, int(round(n1 * seconds / t1)))
+        self.sim.iterations = n2
+        t2 = self.seconds_per_step()
+        if n2 != n1 and (t2 - t1) / (n2 - n1) > 0:
+            b = (t2 - t1) / (n2 - n1)
+            self.sim.iterations = max(1, int(round(n2 + (seconds - t2) / b)))
         self.scene_settings = self.settings
 
     def budget_line(self):
