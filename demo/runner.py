@@ -176,32 +176,36 @@ class PanelSim:
         else:
             self.ghost = self._advance_reference()
 
-    def seconds_per_step(self, repeats=3):
-        """Median wall time (s) of one time step of this panel's solver from its current state, over
-        `repeats` steps after an untimed one (which compiles kernels and builds the solver's caches);
-        the simulation is back in its state afterwards."""
+    def _timed_step(self):
+        """Wall time (s) of one time step of this panel's solver from its current state, to which the
+        simulation returns afterwards."""
         saved = self.sim.save_state()
-        samples = []
-        for _ in range(repeats + 1):
-            self.sim.restore_state(saved)
-            started = time.perf_counter()
-            self.sim.step()
-            samples.append(time.perf_counter() - started)
+        started = time.perf_counter()
+        self.sim.step()
+        seconds = time.perf_counter() - started
         self.sim.restore_state(saved)
-        return float(np.median(samples[1:]))
+        return seconds
 
-    def match_wall_time(self, seconds):
-        """Give this panel as many iterations per step as fit in ``seconds`` of wall time. A step costs
-        a + b x iterations: measured at the panel's iterations n1 and at n2 = n1 x budget / time(n1),
-        then solved for a + b n = budget (n2 if the two measurements give no positive slope)."""
+    def relative_step_time(self, other, rounds=7):
+        """This panel's wall time per step over ``other``'s (a PanelSim): the median of ``rounds`` ratios,
+        each of one step of each timed back to back, so that the load of a shared machine weighs on both
+        alike; after an untimed step of each (compiling kernels, building the solvers' caches)."""
+        self._timed_step()
+        other._timed_step()
+        return float(np.median([self._timed_step() / other._timed_step() for _ in range(rounds)]))
+
+    def match_wall_time(self, other):
+        """Give this panel as many iterations per step as fit in ``other``'s wall time per step. A step
+        costs a + b x iterations: measured (relative to ``other``) at the panel's iterations n1 and at
+        n2 = n1 / ratio(n1), then solved for a + b n = 1 (n2 if the measurements give no positive slope)."""
         n1 = self.sim.iterations
-        t1 = self.seconds_per_step()
-        n2 = max(1, int(round(n1 * seconds / t1)))
+        r1 = self.relative_step_time(other)
+        n2 = max(1, int(round(n1 / r1)))
         self.sim.iterations = n2
-        t2 = self.seconds_per_step()
-        if n2 != n1 and (t2 - t1) / (n2 - n1) > 0:
-            b = (t2 - t1) / (n2 - n1)
-            self.sim.iterations = max(1, int(round(n2 + (seconds - t2) / b)))
+        r2 = self.relative_step_time(other)
+        if n2 != n1 and (r2 - r1) / (n2 - n1) > 0:
+            b = (r2 - r1) / (n2 - n1)
+            self.sim.iterations = max(1, int(round(n2 + (1.0 - r2) / b)))
         self.scene_settings = self.settings
 
     def budget_line(self):
@@ -406,7 +410,7 @@ class SceneRunner:
             if not (isinstance(k, int) and 0 <= k < len(self.panels)) or self.panels[k] is p:
                 raise DemoError(f"panel {p.panel.label!r}: same_wall_time_as={k!r} must be the index of another "
                                 f"panel of scene {scene.name!r} (0..{len(self.panels) - 1})")
-            p.match_wall_time(self.panels[k].seconds_per_step())
+            p.match_wall_time(self.panels[k])
         for i, p in enumerate(self.panels):
             for q in self.panels[:i]:
                 if q.reference_source is None and _same_body(p.panel, q.panel):

@@ -249,16 +249,17 @@ def test_remedy_scene_converges_where_plain_vbd_does_not():
 
 
 def test_same_wall_time_budget_scales_the_iterations(monkeypatch):
-    """match_wall_time solves budget = a + b * iterations for a step that costs a fixed a plus b per
-    iteration (here a model, not a clock), and an index that is no other panel is a DemoError."""
+    """match_wall_time solves a + b * iterations = the other panel's time for a step that costs a fixed
+    a plus b per iteration (here a model, not a clock), and an index that is no other panel is a DemoError."""
     import dataclasses
 
     from demo.runner import PanelSim
 
     scene = scenes.get("remedy")
     plain = PanelSim(scene, scene.panels[0])
-    monkeypatch.setattr(PanelSim, "seconds_per_step", lambda self: 0.002 + 1e-4 * self.sim.iterations)
-    plain.match_wall_time(0.012)
+    monkeypatch.setattr(PanelSim, "relative_step_time",
+                        lambda self, other: (0.002 + 1e-4 * self.sim.iterations) / other)
+    plain.match_wall_time(0.012)          # the other panel's step: 12 ms in this model
     assert abs(plain.sim.iterations - 100) <= 3
     assert plain.label == scene.panels[0].label           # the budget is the scene's setting, not a change
     bad = dataclasses.replace(scene, panels=(dataclasses.replace(scene.panels[0], same_wall_time_as=0),
