@@ -253,8 +253,8 @@ SCENES = {scene.name: scene for scene in [
                       mesh=SHORT_BAR, iterations=20, fixed=PINNED_LEFT, newton_ghost=True,
                       method=solver.Method.MULTILEVEL, show_step_time=True)),
         camera=BAR_CAMERA, grid=BACK_WALL, frames=36, fps=20,
-        notes=GHOST_NOTES + ("ms/step: median wall time of this panel's solver per step so far (the ghost and "
-                             "the error are not counted); the plain VBD budget is set once, at the start",),
+        notes=GHOST_NOTES + ("ms/step: median wall time per step of the panel's solver (not of the ghost); plain "
+                             "VBD's iterations are set at the start",),
     ),
     Scene(
         name="propagation",
