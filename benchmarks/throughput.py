@@ -8,9 +8,10 @@ the set-up (adjacency, uploads), and two machine limits measured with the same a
     neighbours' positions) and does no arithmetic; all colours in one launch like the sweep;
   * arithmetic floor: the sweep's floating-point operations per tet (counted by hand, ~430)
     divided by the measured rate of a compute-bound Taichi kernel on this machine.
-In the 2-thread worker also: the vectorised numpy VBD sweep (benchmarks/baselines.py) and one global
-Newton iteration (assembly + sparse solve) on the same meshes, and the fitted growth exponent of time
-per iteration with mesh size.
+In the 2-thread worker also: the vectorised numpy VBD sweep (benchmarks/baselines.py), one global
+Newton iteration (assembly + sparse solve + line search) of the numpy `newton_solve` and of the Taichi
+`fast_newton_solve` (warm: its sparse pattern and symbolic analysis are built by a first call) on the
+same meshes, and the fitted growth exponent of time per iteration with mesh size.
 
     python -m benchmarks.throughput --out benchmarks/results/throughput    # full run, about 10 min
     python -m benchmarks.throughput --quick --out /tmp/throughput
@@ -36,7 +37,7 @@ COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_
            "ms_per_iter", "iterations_timed", "coloring_s", "setup_s", "first_iteration_s", "second_setup_s",
            "probe_ns_per_tet_iter",
            "arith_floor_ns_per_tet_iter", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s",
-           "newton_ns_per_tet"]
+           "fast_newton_iter_s", "newton_ns_per_tet", "fast_newton_ns_per_tet"]
 
 
 def _probe_class():
@@ -167,12 +168,27 @@ def worker(args):
                         t = time.perf_counter()
                         solver.newton_solve(problem, problem.y_with_constraints(), max_iterations=1)
                         newton_s = time.perf_counter() - t
+                        fast_newton_s = median_seconds(lambda: solver.fast_newton_solve(
+                            problem, problem.y_with_constraints(), max_iterations=1), repeats=3)
                     row["newton_iter_s"] = newton_s
                     row["newton_ns_per_tet"] = newton_s / mesh.n_tets * 1e9
+                    row["fast_newton_iter_s"] = fast_newton_s
+                    row["fast_newton_ns_per_tet"] = fast_newton_s / mesh.n_tets * 1e9
             rows.append(row)
             print(json.dumps(row), file=sys.stderr, flush=True)
             del sim
     print("RESULT " + json.dumps(rows), flush=True)
+
+
+def median_seconds(run, repeats):
+    """Median wall time of run() over `repeats` calls after one untimed call (compiles, builds caches)."""
+    run()
+    samples = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        run()
+        samples.append(time.perf_counter() - t)
+    return float(np.median(samples))
 
 
 def _bytes_per_tet(sim, precision):
@@ -243,6 +259,8 @@ def main(argv=None):
     if len(nt_rows) > 1:
         fits.append(dict(series="Newton iteration", exponent_all=fit_exponent(
             [r["tets"] for r in nt_rows], [r["newton_iter_s"] for r in nt_rows])))
+        fits.append(dict(series="fast Newton iteration", exponent_all=fit_exponent(
+            [r["tets"] for r in nt_rows], [r["fast_newton_iter_s"] for r in nt_rows])))
     write_csv(os.path.join(args.out, "throughput.csv"), rows, COLUMNS + ["flop_rate", "flops_per_tet",
                                                                        "bytes_per_tet"])
     write_csv(os.path.join(args.out, "scaling_fit.csv"), fits)
@@ -262,13 +280,13 @@ def argparse_hidden():
 def report(rows, fits):
     cols = ["tets", "precision", "threads", "n_colors", "ns_per_tet_iter", "ms_per_iter",
             "probe_ns_per_tet_iter", "arith_floor_ns_per_tet_iter", "coloring_s", "setup_s", "first_iteration_s",
-            "second_setup_s", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s"]
+            "second_setup_s", "numpy_ns_per_tet_iter", "numpy_speedup", "newton_iter_s", "fast_newton_iter_s"]
     fmt = {"ns_per_tet_iter": lambda v: f"{v:.1f}", "probe_ns_per_tet_iter": lambda v: f"{v:.1f}",
            "arith_floor_ns_per_tet_iter": lambda v: f"{v:.1f}", "numpy_ns_per_tet_iter": lambda v: f"{v:.0f}",
            "numpy_speedup": lambda v: f"{v:.0f}x"}
     ordered = sorted(rows, key=lambda r: (r["precision"] != "float64", r["threads"], r["tets"]))
     parts = [table(ordered, cols, "ns per tet per VBD iteration (probe = memory-read floor, arith = "
-                   "arithmetic floor; numpy and Newton with 2 threads, float64)", fmt),
+                   "arithmetic floor; numpy, Newton (numpy) and fast Newton (Taichi) with 2 threads, float64)", fmt),
              table(fits, ["series", "exponent_all", "exponent_10k_up"],
                    "Fitted growth exponent of time per iteration with mesh size (1 = linear)")]
     return "\n\n".join(parts)
@@ -303,9 +321,13 @@ def plot(rows, path):
     tr = sorted([r for r in rows if r.get("newton_iter_s") not in ("", None)], key=lambda r: r["tets"])
     if tr:
         axes[0].loglog([r["tets"] for r in tr], [r["newton_ns_per_tet"] for r in tr], color="tab:red",
-                       marker="^", label="one Newton iteration")
+                       marker="^", label="one numpy Newton iteration")
         axes[1].loglog([r["tets"] for r in tr], [r["newton_iter_s"] * 1e3 for r in tr], color="tab:red",
-                       marker="^", label="one Newton iteration")
+                       marker="^", label="one numpy Newton iteration")
+        axes[0].loglog([r["tets"] for r in tr], [r["fast_newton_ns_per_tet"] for r in tr], color="tab:purple",
+                       marker="v", label="one fast Newton iteration")
+        axes[1].loglog([r["tets"] for r in tr], [r["fast_newton_iter_s"] * 1e3 for r in tr], color="tab:purple",
+                       marker="v", label="one fast Newton iteration")
     axes[0].set_ylabel("ns per tet per iteration")
     axes[1].set_ylabel("ms per iteration")
     for ax in axes:

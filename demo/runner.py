@@ -1,5 +1,6 @@
 """Turn a ``Scene`` into running simulations and, frame by frame, into what should be drawn."""
 import dataclasses
+import time
 import warnings
 from dataclasses import dataclass
 
@@ -8,6 +9,7 @@ import numpy as np
 import solver
 
 from . import colours
+from .errors import DemoError
 from .scenes import Advance, ColourBy
 
 # Newton stops once its step is below 1e-6 of the body size (a micrometre on a 1 m bar): far below
@@ -86,7 +88,7 @@ class PanelSim:
             damping=scene.damping, ground=scene.ground,
             kinematic=kinematic if kinematic.any() else None,
             kinematic_motion=panel.motion if kinematic.any() else None, keep_orientation=panel.keep_orientation,
-            arch=arch)
+            method=panel.method, arch=arch)
         self.sim = solver.Simulation(**self._settings)
         self.scene_settings = self.settings
         self.rest = mesh.vertices
@@ -110,6 +112,7 @@ class PanelSim:
         self.iteration = 0
         self.in_step = False
         self.failure = None         # why this panel stopped (it diverged), or None while it runs
+        self.step_seconds = []      # wall time of every solver step since the reset (s)
 
     @property
     def settings(self):
@@ -152,9 +155,11 @@ class PanelSim:
         problem = self.sim.step_problem() if self.ghost_enabled else None
         if self.ghost_enabled and self.ghost_mode == GhostMode.TRAJECTORY and not self._shares_reference_next():
             self._sync_reference()
+        started = time.perf_counter()
         if not self._guarded(self.sim.step):
             self.ghost, self.error = None, None
             return
+        self.step_seconds.append(time.perf_counter() - started)
         self.iteration = self.sim.iterations
         if problem is None:
             self.ghost, self.error = None, None
@@ -170,6 +175,57 @@ class PanelSim:
             self.ghost = self.reference_source.ghost
         else:
             self.ghost = self._advance_reference()
+
+    def _timed_step(self):
+        """Wall time (s) of one time step of this panel's solver from its current state, to which the
+        simulation returns afterwards."""
+        saved = self.sim.save_state()
+        started = time.perf_counter()
+        self.sim.step()
+        seconds = time.perf_counter() - started
+        self.sim.restore_state(saved)
+        return seconds
+
+    def relative_step_time(self, other, rounds=7):
+        """This panel's wall time per step over ``other``'s (a PanelSim): the median of ``rounds`` ratios,
+        each of one step of each timed back to back, so that the load of a shared machine weighs on both
+        alike; after an untimed step of each (compiling kernels, building the solvers' caches)."""
+        self._timed_step()
+        other._timed_step()
+        return float(np.median([self._timed_step() / other._timed_step() for _ in range(rounds)]))
+
+    def match_wall_time(self, other):
+        """Give this panel as many iterations per step as fit in ``other``'s wall time per step. A step
+        costs a + b x iterations: measured (relative to ``other``) at the panel's iterations n1 and at
+        n2 = n1 / ratio(n1), then solved for a + b n = 1 (n2 if the measurements give no positive slope)."""
+        n1 = self.sim.iterations
+        r1 = self.relative_step_time(other)
+        n2 = max(1, int(round(n1 / r1)))
+        self.sim.iterations = n2
+        r2 = self.relative_step_time(other)
+        if n2 != n1 and (r2 - r1) / (n2 - n1) > 0:
+            b = (r2 - r1) / (n2 - n1)
+            self.sim.iterations = max(1, int(round(n2 + (1.0 - r2) / b)))
+        self.scene_settings = self.settings
+
+    def budget_line(self):
+        """What the solver of a step does, e.g. "plain VBD, 140 iterations" or "two-level VBD, 5 cycles",
+        with the median measured wall time per step when the panel shows it."""
+        sim = self.sim
+        if sim.method is solver.Method.MULTILEVEL:
+            # Simulation(method="multilevel"): iterations // 4 cycles of 2 sweeps + coarse + 2 sweeps
+            what = f"two-level VBD, {max(1, sim.iterations // 4)} cycles"
+        elif sim.method is solver.Method.PCG:
+            what = "Newton-PCG to convergence"
+        elif sim.method is solver.Method.NEWTON:
+            what = "Newton to convergence"
+        elif self.panel.show_step_time:
+            what = f"plain VBD, {sim.iterations} iterations"
+        else:
+            what = f"{sim.iterations} iterations"
+        if self.panel.show_step_time and self.step_seconds:
+            what += f" = {1e3 * float(np.median(self.step_seconds)):.0f} ms/step"
+        return what
 
     def _guarded(self, advance):
         """Run ``advance()``; a diverging body stops this panel with a message (``failure``, shown in its
@@ -295,7 +351,7 @@ class PanelSim:
         if self.scene.advance is Advance.ITERATIONS:
             lines.append(f"iteration {self.iteration}")
         elif by is not ColourBy.COLOUR_SETS:
-            lines.append(f"{self.sim.iterations} iterations, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
+            lines.append(f"{self.budget_line()}, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
         gap = None
         if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
             tip = self.tip
@@ -306,7 +362,9 @@ class PanelSim:
             lines.append(f"off the ghost by {_cm(gap)} cm = {gap / self.length:.0%} of its length")
         if self.error is not None:
             unsure = "" if self.error_converged else " (Newton not converged: approximate)"
-            lines.append(f"relative error {self.error:.3f}{unsure}")
+            # three decimals read well down to 0.01; below, where only the remedies get, the exponent
+            shown = f"{self.error:.3f}" if self.error >= 0.01 else f"{self.error:.1e}"
+            lines.append(f"relative error {shown}{unsure}")
         if self.panel.show_inverted:
             lines.append(f"inverted tets: {self.sim.inverted_count()}")
         lines += self.remarks()
@@ -351,6 +409,14 @@ class SceneRunner:
             self.frame = 0
             return
         self.panels = [PanelSim(scene, panel, arch) for panel in scene.panels]
+        for p in self.panels:
+            k = p.panel.same_wall_time_as
+            if k is None:
+                continue
+            if not (isinstance(k, int) and 0 <= k < len(self.panels)) or self.panels[k] is p:
+                raise DemoError(f"panel {p.panel.label!r}: same_wall_time_as={k!r} must be the index of another "
+                                f"panel of scene {scene.name!r} (0..{len(self.panels) - 1})")
+            p.match_wall_time(self.panels[k])
         for i, p in enumerate(self.panels):
             for q in self.panels[:i]:
                 if q.reference_source is None and _same_body(p.panel, q.panel):

@@ -33,6 +33,9 @@ def test_pareto_quick(tmp_path):
     assert (tmp_path / "pareto.png").stat().st_size > 0
     methods = {r["method"] for r in data}
     assert {"VBD", "numpy VBD", "Newton", "Jacobi omega=1"} <= methods
+    # the global channels of chapter 7: numpy twin of the fast Newton, Newton-PCG, two-level VBD
+    assert {"numpy Newton", "Newton-PCG (color_sweep)", "Newton-PCG (block_jacobi)", "two-level VBD"} <= methods
+    assert {"newton", "numpy_newton", "pcg", "multilevel"} <= {r["family"] for r in data}
     for case in {r["case"] for r in data}:
         vbd = [r for r in data if r["case"] == case and r["method"] == "VBD"]
         errors = [float(r["error"]) for r in vbd]
@@ -42,6 +45,12 @@ def test_pareto_quick(tmp_path):
         assert min(gaps) > -1e-8                         # x* minimises G: nobody goes below it
         newton = [r for r in data if r["case"] == case and r["method"] == "Newton"]
         assert float(newton[-1]["error"]) == 0.0         # its last iterate is x* itself
+        for method in ("numpy Newton", "Newton-PCG (color_sweep)", "Newton-PCG (block_jacobi)", "two-level VBD"):
+            curve = [r for r in data if r["case"] == case and r["method"] == method]
+            errors = [float(r["error"]) for r in curve]
+            assert errors[-1] < 1e-6 * errors[0], method    # each reaches the fast Newton's x*
+            seconds = [float(r["seconds"]) for r in curve]
+            assert seconds == sorted(seconds) and seconds[-1] > 0, method
         numpy_vbd = [r for r in data if r["case"] == case and r["method"] == "numpy VBD"]
         # same sweep, same iterates: the numpy errors equal the Taichi ones at the same iteration count
         by_it = {r["iterations"]: float(r["error"]) for r in vbd}
@@ -55,13 +64,15 @@ def test_throughput_quick(tmp_path):
     run_quick("throughput", tmp_path)
     data = rows(tmp_path / "throughput.csv")
     assert {"tets", "precision", "threads", "n_colors", "ns_per_tet_iter", "coloring_s", "setup_s",
-            "numpy_ns_per_tet_iter", "newton_iter_s"} <= set(data[0])
+            "numpy_ns_per_tet_iter", "newton_iter_s", "fast_newton_iter_s"} <= set(data[0])
     assert {(r["precision"], r["threads"]) for r in data} == {("float64", "1"), ("float64", "2"),
                                                               ("float32", "1"), ("float32", "2")}
     for r in data:
         assert 4 <= int(r["n_colors"]) <= 64
         assert float(r["ns_per_tet_iter"]) > 0 and math.isfinite(float(r["ns_per_tet_iter"]))
     assert any(r["numpy_ns_per_tet_iter"] for r in data)
+    newton = [r for r in data if r["fast_newton_iter_s"]]
+    assert newton and all(float(r["fast_newton_iter_s"]) > 0 and float(r["newton_iter_s"]) > 0 for r in newton)
     fits = rows(tmp_path / "scaling_fit.csv")
     assert all(math.isfinite(float(f["exponent_all"])) for f in fits)
     assert (tmp_path / "throughput.png").exists()
