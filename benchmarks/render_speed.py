@@ -66,7 +66,7 @@ def main(argv=None):
     from PIL import Image
 
     import solver
-    from demo import colours
+    from demo import colors
     from demo.render import Body, Camera, GridPlane, Renderer
 
     with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not a result
@@ -77,14 +77,14 @@ def main(argv=None):
     renderer = Renderer(width, height, arch=args.arch)
     camera = Camera(eye=(0.0, -1.3, 0.8), target=(0.0, 0.0, 0.0), fov_degrees=40)
     grid = GridPlane(point=(0.0, 0.0, -0.3))
-    t = colours.normalise(rest[:, 0], -0.5, 0.5)
-    vertex_colours = colours.sequential(t)
+    t = colors.normalise(rest[:, 0], -0.5, 0.5)
+    vertex_rgb = colors.sequential(t)
 
     rows = []
     for frame in progress(range(args.frames + 1), desc="render_speed", disable=args.no_progress):
         x = rest.copy()
         x[:, 2] += 0.1 * np.sin(3.0 * x[:, 0] + 0.2 * frame)
-        body = Body(x, faces, vertex_colours, ghost_positions=x + (0.0, 0.0, 0.05))
+        body = Body(x, faces, vertex_rgb, ghost_positions=x + (0.0, 0.0, 0.05))
         if args.fresh_background:
             renderer.forget_background()
         start = time.perf_counter()

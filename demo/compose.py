@@ -2,9 +2,9 @@
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from . import colours
+from . import colors
 from .render import Body, Renderer, Viewport
-from .scenes import ColourBy
+from .scenes import ColorBy
 
 TEXT = (20, 22, 28)
 MUTED = (70, 74, 84)
@@ -31,9 +31,9 @@ class FrameComposer:
         self.title_font = ImageFont.load_default(size=int(self.font_size * 1.2))
 
     def compose(self, states):
-        nearest = self.scene.colour_by is ColourBy.COLOUR_SETS
+        nearest = self.scene.color_by is ColorBy.COLOR_SETS
         for state, viewport in zip(states, self.viewports):
-            body = Body(state.positions, state.faces, state.colours, state.ghost, nearest_vertex=nearest)
+            body = Body(state.positions, state.faces, state.rgb, state.ghost, nearest_vertex=nearest)
             self.renderer.draw(body, self.scene.camera, viewport, self.scene.grid)
         image = Image.fromarray(self.renderer.image())
         draw = ImageDraw.Draw(image)
@@ -47,11 +47,11 @@ class FrameComposer:
                 draw.line([vp.x, vp.y, vp.x, vp.y + vp.height], fill=(150, 150, 160), width=1)
             row = 0
             for line in state.lines:
-                colour = ERROR_TEXT if line.startswith("relative error") else TEXT
+                rgb = ERROR_TEXT if line.startswith("relative error") else TEXT
                 for piece in self.fit(line, vp.width - s):
-                    draw.text((vp.x + s // 2, vp.y + s // 2 + int(1.3 * s * row)), piece, font=self.font, fill=colour)
+                    draw.text((vp.x + s // 2, vp.y + s // 2 + int(1.3 * s * row)), piece, font=self.font, fill=rgb)
                     row += 1
-        if self.scene.colour_by in (ColourBy.DISPLACEMENT, ColourBy.RESIDUAL):
+        if self.scene.color_by in (ColorBy.DISPLACEMENT, ColorBy.RESIDUAL):
             self._scalar_legend(image, draw)
         return image
 
@@ -77,13 +77,13 @@ class FrameComposer:
         x0 = x1 - s
         y1 = vp.y + vp.height - 2 * s
         y0 = y1 - bar_h
-        ramp = colours.sequential(np.linspace(1.0, 0.0, max(y1 - y0, 1)))
+        ramp = colors.sequential(np.linspace(1.0, 0.0, max(y1 - y0, 1)))
         bar = np.repeat((ramp * 255).round().astype(np.uint8)[:, None, :], x1 - x0, axis=1)
         image.paste(Image.fromarray(bar), (x0, y0))
         draw.rectangle([x0, y0, x1, y1], outline=TEXT)
-        lo, hi = self.scene.colour_range
-        unit = "m" if self.scene.colour_by is ColourBy.DISPLACEMENT else "N"
-        name = "moved" if self.scene.colour_by is ColourBy.DISPLACEMENT else "residual"
+        lo, hi = self.scene.color_range
+        unit = "m" if self.scene.color_by is ColorBy.DISPLACEMENT else "N"
+        name = "moved" if self.scene.color_by is ColorBy.DISPLACEMENT else "residual"
         draw.text((x0 - s * 5, y0 - int(1.4 * s)), f"{name} ({unit}, log)", font=self.font, fill=TEXT)
         draw.text((x0 - int(4.2 * s), y0), f"{hi:.0e}", font=self.font, fill=TEXT)
         draw.text((x0 - int(4.2 * s), y1 - s), f"{lo:.0e}", font=self.font, fill=TEXT)

@@ -45,7 +45,7 @@ NUMBERS = "numbers.json"
 MANIFEST = "manifest.json"
 # What every section's figures are drawn from, besides the section's own code in this module.
 DEPENDENCIES = ("solver/*.py", "demo/scenes.py", "demo/runner.py", "demo/compose.py", "demo/render.py",
-                "demo/colours.py", "assets/*")
+                "demo/colors.py", "assets/*")
 
 GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
 INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
@@ -301,8 +301,8 @@ def _warm_up(sim):
     sim.reset()
 
 
-def _save_image(image, path, colours=256):
-    image = image.convert("RGB").quantize(colors=colours, method=2, dither=0)
+def _save_image(image, path, n_colors=256):
+    image = image.convert("RGB").quantize(colors=n_colors, method=2, dither=0)
     image.save(path, optimize=True)
 
 
@@ -314,7 +314,7 @@ def _save_plot(fig, path):
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=110, bbox_inches="tight")
     buffer.seek(0)
-    _save_image(Image.open(buffer), path, colours=128)
+    _save_image(Image.open(buffer), path, n_colors=128)
     import matplotlib.pyplot as plt
 
     plt.close(fig)
@@ -357,7 +357,7 @@ def _render_scene(scene, frames_to_save, out, prefix, size, measure=()):
 # ---------------------------------------------------------------------------------------------
 # Sections: each returns {key: text} for the notes
 # ---------------------------------------------------------------------------------------------
-def section_colouring(out, full, size):
+def section_coloring(out, full, size):
     import numpy as np
 
     import solver
@@ -652,7 +652,7 @@ REMEDY_FRAME = 15      # t = 0.27 s: the plain VBD bar has sagged well below its
 
 
 SECTIONS = {
-    "colouring": section_colouring,
+    "colouring": section_coloring,
     "sweeps": section_sweeps,
     "convergence": section_convergence,
     "propagation": section_propagation,

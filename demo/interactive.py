@@ -19,9 +19,9 @@ import numpy as np
 import solver
 from solver._ti import ti
 
-from . import colours, scenes
+from . import colors, scenes
 from .errors import DemoError
-from .render import GHOST_COLOUR
+from .render import GHOST_RGB
 from .runner import GhostMode, PanelSim
 from .scenes import Advance
 
@@ -29,7 +29,7 @@ HELP = ("space play/pause | n step | i one iteration | r reset | left-drag a ver
         "right-drag + WASDQE camera | Esc quit")
 
 
-COLOUR_OPTIONS = (scenes.ColourBy.BODY, scenes.ColourBy.COLOUR_SETS, scenes.ColourBy.RESIDUAL)
+COLOUR_OPTIONS = (scenes.ColorBy.BODY, scenes.ColorBy.COLOR_SETS, scenes.ColorBy.RESIDUAL)
 CONTROLS_WIDTH = 0.3        # of the window width
 CHAR_WIDTH = 8.6            # pixels per character of GGUI's built-in font
 LINE_HEIGHT = 18            # pixels per line of text
@@ -71,7 +71,7 @@ class InteractiveApp:
         self.camera = ti.ui.Camera()
         self.playing = False
         self.show_ghost = False
-        self.colour_by = scenes.ColourBy.BODY
+        self.color_by = scenes.ColorBy.BODY
         self.drag = None          # (panel index, vertex index, view depth) while dragging
         self.frames_drawn = 0
         self.load(scene_name)
@@ -91,12 +91,12 @@ class InteractiveApp:
         self.selected = None        # the panel index the sliders change; None: every panel
         # our own normals and RGBA colours: GGUI's kernels for the defaults assign float64 literals
         # to float32 fields (a page of precision warnings at start)
-        self.vertex_fields, self.colour_fields, self.ghost_fields, self.index_fields = [], [], [], []
+        self.vertex_fields, self.rgba_fields, self.ghost_fields, self.index_fields = [], [], [], []
         self.normal_fields, self.ghost_normal_fields = [], []
         for p in self.panels:
             n = p.sim.positions.shape[0]
             self.vertex_fields.append(ti.Vector.field(3, ti.f32, n))
-            self.colour_fields.append(ti.Vector.field(4, ti.f32, n))
+            self.rgba_fields.append(ti.Vector.field(4, ti.f32, n))
             self.ghost_fields.append(ti.Vector.field(3, ti.f32, n))
             self.normal_fields.append(ti.Vector.field(3, ti.f32, n))
             self.ghost_normal_fields.append(ti.Vector.field(3, ti.f32, n))
@@ -182,8 +182,8 @@ class InteractiveApp:
         for p in self.panels:
             p.ghost_enabled = self.show_ghost
 
-    def set_colour_by(self, colour_by):
-        self.colour_by = colour_by
+    def set_color_by(self, color_by):
+        self.color_by = color_by
 
     # ---------------------------------------------------------------------------------------
     # Mouse dragging: pick the vertex nearest the cursor, then keep it under the cursor
@@ -290,8 +290,8 @@ class InteractiveApp:
             if _moved(rho, shown.chebyshev_rho):
                 self.set_chebyshev_rho(rho)
             for option in COLOUR_OPTIONS:
-                if w.checkbox(f"colour: {option.value}", self.colour_by is option) and self.colour_by is not option:
-                    self.set_colour_by(option)
+                if w.checkbox(f"colour: {option.value}", self.color_by is option) and self.color_by is not option:
+                    self.set_color_by(option)
             ghost = w.checkbox("Newton ghost (slow)", self.show_ghost)
             if ghost != self.show_ghost:
                 self.set_ghost(ghost)
@@ -317,14 +317,14 @@ class InteractiveApp:
             x = p.sim.positions
             self.vertex_fields[i].from_numpy((x + self.offsets[i]).astype(np.float32))
             self.normal_fields[i].from_numpy(vertex_normals(x, p.faces).astype(np.float32))
-            if self.colour_by is scenes.ColourBy.COLOUR_SETS:
-                rgb = colours.categorical(p.sim.colors)
-            elif self.colour_by is scenes.ColourBy.RESIDUAL:
+            if self.color_by is scenes.ColorBy.COLOR_SETS:
+                rgb = colors.categorical(p.sim.colors)
+            elif self.color_by is scenes.ColorBy.RESIDUAL:
                 r = np.linalg.norm(p.sim.residual(), axis=1)
-                rgb = colours.sequential(colours.normalise(r, 1e-6, max(float(r.max()), 1e-5), log=True))
+                rgb = colors.sequential(colors.normalise(r, 1e-6, max(float(r.max()), 1e-5), log=True))
             else:
-                rgb = colours.uniform(len(x))
-            self.colour_fields[i].from_numpy(np.c_[rgb, np.full(len(x), OPAQUE)].astype(np.float32))
+                rgb = colors.uniform(len(x))
+            self.rgba_fields[i].from_numpy(np.c_[rgb, np.full(len(x), OPAQUE)].astype(np.float32))
             if self.show_ghost and p.ghost is not None:
                 self.ghost_fields[i].from_numpy((p.ghost + self.offsets[i]).astype(np.float32))
                 self.ghost_normal_fields[i].from_numpy(vertex_normals(p.ghost, p.faces).astype(np.float32))
@@ -344,10 +344,10 @@ class InteractiveApp:
             if p.failure is not None:       # a diverged body is far away (or not finite): its label explains
                 continue
             self.scene3d.mesh(self.vertex_fields[i], indices=self.index_fields[i], normals=self.normal_fields[i],
-                              per_vertex_color=self.colour_fields[i], two_sided=True)
+                              per_vertex_color=self.rgba_fields[i], two_sided=True)
             if self.show_ghost and p.ghost is not None:
                 self.scene3d.mesh(self.ghost_fields[i], indices=self.index_fields[i],
-                                  normals=self.ghost_normal_fields[i], color=GHOST_COLOUR,
+                                  normals=self.ghost_normal_fields[i], color=GHOST_RGB,
                                   show_wireframe=True, two_sided=True)
         self.canvas.set_background_color((0.9, 0.91, 0.93))
         self.canvas.scene(self.scene3d)

@@ -71,8 +71,8 @@ class Viewport:
 
 BACKGROUND_TOP = (0.93, 0.94, 0.96)
 BACKGROUND_BOTTOM = (0.78, 0.80, 0.84)
-GRID_COLOUR = (0.55, 0.57, 0.62)
-GHOST_COLOUR = (0.95, 0.35, 0.25)
+GRID_RGB = (0.55, 0.57, 0.62)
+GHOST_RGB = (0.95, 0.35, 0.25)
 GHOST_ALPHA = 0.35
 LIGHT_DIRECTION_TUPLE = tuple(float(v) for v in np.array([0.35, -0.55, 0.76]) / np.linalg.norm([0.35, -0.55, 0.76]))
 
@@ -182,7 +182,7 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
     forward = ti.Vector([frame[2, 0], frame[2, 1], frame[2, 2]])
     top = ti.Vector([BACKGROUND_TOP[0], BACKGROUND_TOP[1], BACKGROUND_TOP[2]], ti.f32)
     bottom = ti.Vector([BACKGROUND_BOTTOM[0], BACKGROUND_BOTTOM[1], BACKGROUND_BOTTOM[2]], ti.f32)
-    grid_colour = ti.Vector(GRID_COLOUR, ti.f32)
+    grid_rgb = ti.Vector(GRID_RGB, ti.f32)
     normal = ti.Vector([grid[3], grid[4], grid[5]])
     point = ti.Vector([grid[0], grid[1], grid[2]])
     spacing = grid[6]
@@ -210,7 +210,7 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
                                 dist = ti.abs(u - ti.round(u)) * spacing
                                 line = ti.max(line, ti.max(ti.f32(0.0), ti.f32(1.0) - dist / width))
                         a = ti.cast(0.6, ti.f32) * line / (1.0 + ti.cast(0.3, ti.f32) * s)
-                        rgb = sky * (1.0 - a) + grid_colour * a
+                        rgb = sky * (1.0 - a) + grid_rgb * a
             for j in ti.static(range(3)):
                 background[r, c, j] = ti.cast(ti.min(255.0, ti.max(0.0, rgb[j] * 255.0 + 0.5)), ti.u8)
 
@@ -219,7 +219,7 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
 def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), background: ti.types.ndarray(dtype=ti.u8, ndim=3),
            key: ti.types.ndarray(dtype=ti.i64, ndim=2),
            screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
-           colours: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           rgb: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
            ghost_key: ti.types.ndarray(dtype=ti.i64, ndim=2), ghost_light: ti.types.ndarray(dtype=ti.f32, ndim=1),
            has_ghost: ti.i32, nearest: ti.i32, x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
     # one thread per row, columns in order: cheaper on the CPU than a flattened 2D range
@@ -253,18 +253,18 @@ def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), background: ti.types.nd
                     base = ti.Vector([0.0, 0.0, 0.0])
                     for j in ti.static(range(3)):
                         v = faces[f, j]
-                        base += w[j] * ti.Vector([colours[v, 0], colours[v, 1], colours[v, 2]])
+                        base += w[j] * ti.Vector([rgb[v, 0], rgb[v, 1], rgb[v, 2]])
                     rgb = base * light[f]
                 if g != empty:
                     gf = ti.cast(g & ti.i64(0xFFFFFFFF), ti.i32)
-                    ghost = ti.Vector(GHOST_COLOUR) * ghost_light[gf]
+                    ghost = ti.Vector(GHOST_RGB) * ghost_light[gf]
                     edge = 0
                     if r > y0 and r < y1 - 1 and c > x0 and c < x1 - 1:
                         if ghost_key[r - 1, c] == empty or ghost_key[r + 1, c] == empty or \
                                 ghost_key[r, c - 1] == empty or ghost_key[r, c + 1] == empty:
                             edge = 1
                     if edge == 1:
-                        rgb = ti.Vector(GHOST_COLOUR) * 0.8
+                        rgb = ti.Vector(GHOST_RGB) * 0.8
                     elif k == empty:
                         # translucent where the body is not; over the body only the outline shows
                         rgb = rgb * (1.0 - GHOST_ALPHA) + ghost * GHOST_ALPHA
@@ -278,7 +278,7 @@ class Body:
 
     positions: np.ndarray
     faces: np.ndarray
-    colours: np.ndarray
+    rgb: np.ndarray
     ghost_positions: np.ndarray = None
     nearest_vertex: bool = False    # paint each pixel with its nearest corner's colour (no blending)
 
@@ -323,8 +323,8 @@ class Renderer:
             _clear(self._ghost_key, *box)
             _rasterise(ghost_screen, faces, self._ghost_key, *box)
         self._ensure_background(box, frame, focal, grid)
-        colours = np.ascontiguousarray(body.colours, dtype=np.float32)
-        _shade(self._image, self._background, self._key, screen, faces, colours, light, self._ghost_key, ghost_light,
+        rgb = np.ascontiguousarray(body.rgb, dtype=np.float32)
+        _shade(self._image, self._background, self._key, screen, faces, rgb, light, self._ghost_key, ghost_light,
                int(has_ghost), int(body.nearest_vertex), *box)
 
     def forget_background(self):

@@ -8,9 +8,9 @@ import numpy as np
 
 import solver
 
-from . import colours
+from . import colors
 from .errors import DemoError
-from .scenes import Advance, ColourBy
+from .scenes import Advance, ColorBy
 
 # Newton stops once its step is below 1e-6 of the body size (a micrometre on a 1 m bar): far below
 # what a frame shows, and a warm start from the VBD result gets there in two to four iterations
@@ -35,7 +35,7 @@ class PanelState:
 
     positions: np.ndarray
     faces: np.ndarray
-    colours: np.ndarray
+    rgb: np.ndarray
     ghost: np.ndarray       # reference positions, or None
     lines: list             # label lines
     error: float            # relative error of this step against its Newton solution x*, or None
@@ -337,20 +337,20 @@ class PanelSim:
 
     def state(self):
         x = self.sim.positions
-        by, lo_hi = self.scene.colour_by, self.scene.colour_range
+        by, lo_hi = self.scene.color_by, self.scene.color_range
         lines = [self.label]
-        if by is ColourBy.DISPLACEMENT:
-            rgb = colours.sequential(colours.normalise(np.linalg.norm(x - self.start, axis=1), *lo_hi, log=True))
-        elif by is ColourBy.RESIDUAL:
-            rgb = colours.sequential(colours.normalise(np.linalg.norm(self.sim.residual(), axis=1), *lo_hi, log=True))
-        elif by is ColourBy.COLOUR_SETS:
-            rgb = colours.categorical(self.sim.colors)
+        if by is ColorBy.DISPLACEMENT:
+            rgb = colors.sequential(colors.normalise(np.linalg.norm(x - self.start, axis=1), *lo_hi, log=True))
+        elif by is ColorBy.RESIDUAL:
+            rgb = colors.sequential(colors.normalise(np.linalg.norm(self.sim.residual(), axis=1), *lo_hi, log=True))
+        elif by is ColorBy.COLOR_SETS:
+            rgb = colors.categorical(self.sim.colors)
             lines.append(f"{self.sim.n_colors} colours for {len(x)} vertices")
         else:
-            rgb = colours.uniform(len(x))
+            rgb = colors.uniform(len(x))
         if self.scene.advance is Advance.ITERATIONS:
             lines.append(f"iteration {self.iteration}")
-        elif by is not ColourBy.COLOUR_SETS:
+        elif by is not ColorBy.COLOR_SETS:
             lines.append(f"{self.budget_line()}, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
         gap = None
         if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
@@ -390,11 +390,11 @@ class RestPanel:
         self.n_colors = len(np.unique(self.colors[self.colors >= 0]))
 
     def state(self):
-        if self.scene.colour_by is ColourBy.COLOUR_SETS:
-            rgb = colours.categorical(self.colors)
+        if self.scene.color_by is ColorBy.COLOR_SETS:
+            rgb = colors.categorical(self.colors)
             lines = [self.panel.label, f"{self.n_colors} colours for {len(self.start)} vertices"]
         else:
-            rgb, lines = colours.uniform(len(self.start)), [self.panel.label]
+            rgb, lines = colors.uniform(len(self.start)), [self.panel.label]
         return PanelState(self.start, self.faces, rgb, None, lines, None)
 
 

@@ -23,13 +23,13 @@ from .render import Camera, GridPlane
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
-class ColourBy(enum.Enum):
+class ColorBy(enum.Enum):
     """How vertices are coloured."""
 
     BODY = "body"                  # one flat colour
     DISPLACEMENT = "displacement"  # |x - x_n| in this time step, log scale
     RESIDUAL = "residual"          # |f_i|, the per-vertex force residual, log scale
-    COLOUR_SETS = "colour sets"    # the parallel colour of each vertex
+    COLOR_SETS = "colour sets"    # the parallel colour of each vertex
 
 
 class Advance(enum.Enum):
@@ -159,8 +159,8 @@ class Scene:
     ground: solver.Ground = None
     damping: float = 0.0
     grid: GridPlane = None
-    colour_by: ColourBy = ColourBy.BODY
-    colour_range: tuple = (1e-5, 1e-1)    # for DISPLACEMENT / RESIDUAL, log scale
+    color_by: ColorBy = ColorBy.BODY
+    color_range: tuple = (1e-5, 1e-1)    # for DISPLACEMENT / RESIDUAL, log scale
     advance: Advance = Advance.TIME_STEPS
     notes: tuple = field(default=())      # extra lines printed under the title
     # the interactive window's Chebyshev slider stops here: above the spectral radius of the VBD
@@ -268,7 +268,7 @@ SCENES = {scene.name: scene for scene in [
                       initial_guess=solver.InitialGuess.PREVIOUS, newton_ghost=True),),
         camera=Camera(eye=(0.5, -1.9, 0.25), target=(0.5, 0.0, 0.0), fov_degrees=35.0),
         grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=41, fps=5,
-        colour_by=ColourBy.DISPLACEMENT, colour_range=(1e-6, 5e-2), advance=Advance.ITERATIONS,
+        color_by=ColorBy.DISPLACEMENT, color_range=(1e-6, 5e-2), advance=Advance.ITERATIONS,
         notes=("colour: distance moved in this step (log scale); red ghost: converged Newton step",),
     ),
     Scene(
@@ -278,7 +278,7 @@ SCENES = {scene.name: scene for scene in [
                     "sweep of a VBD iteration. Pinned vertices (grey) are never solved.",
         panels=(Panel(label="bar 40x4x4 cells", material=_material(1e6), fixed=PINNED_LEFT),),
         camera=Camera(eye=(0.3, -0.9, 0.45), target=(0.5, 0.0, 0.0), fov_degrees=40.0),
-        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=1, fps=1, colour_by=ColourBy.COLOUR_SETS,
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=1, fps=1, color_by=ColorBy.COLOR_SETS,
         advance=Advance.REST,
     ),
     Scene(

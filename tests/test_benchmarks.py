@@ -130,7 +130,7 @@ def test_numpy_vbd_matches_taichi_sweep(solver_module):
     assert np.abs(x_numpy - x_taichi).max() < 1e-12
 
 
-def test_jacobi_without_colouring_is_worse(solver_module):
+def test_jacobi_without_coloring_is_worse(solver_module):
     """Updating all vertices at once from the same old positions overshoots: plain Jacobi ends far
     from x*, where the coloured sweep converges."""
     solver = solver_module

@@ -43,7 +43,7 @@ def test_coloring_is_cached_per_connectivity(monkeypatch, tmp_path):
     assert solver.box_mesh(cells=(7, 3, 3)).topology_key() != key
 
 
-def test_simulation_leaves_fixed_vertices_out_of_the_colour_sets():
+def test_simulation_leaves_fixed_vertices_out_of_the_color_sets():
     mesh = solver.box_mesh(cells=(6, 2, 2))
     fixed = mesh.vertices[:, 0] < 1e-9
     sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), fixed=fixed, iterations=1)
@@ -53,7 +53,7 @@ def test_simulation_leaves_fixed_vertices_out_of_the_colour_sets():
     assert sim.n_colors == len(np.unique(sim.colors[~fixed]))
 
 
-def test_more_than_64_colours_is_reported():
+def test_more_than_64_colors_is_reported():
     """68 vertices that all share tets pairwise (tets (i, j, 66, 67)) need 68 colours."""
     i, j = np.triu_indices(66, k=1)
     tets = np.stack([i, j, np.full_like(i, 66), np.full_like(i, 67)], axis=1)
@@ -61,7 +61,7 @@ def test_more_than_64_colours_is_reported():
         solver.color_vertices(tets, 68)
 
 
-def test_a_cache_written_by_other_colouring_code_is_never_read(monkeypatch, tmp_path):
+def test_a_cache_written_by_other_coloring_code_is_never_read(monkeypatch, tmp_path):
     """The disk cache is keyed on the source of `_greedy`: a homework starter never shows a colouring
     that the reference solution (or an earlier version of the student's code) cached."""
     from solver import coloring

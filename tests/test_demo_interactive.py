@@ -67,7 +67,7 @@ def test_controls(app):
     assert all(p.sim.iterations == 7 and p.sim.dt == pytest.approx(1 / 120) for p in app.panels)
     app.set_chebyshev_rho(0.9)
     assert all(p.sim.chebyshev_rho == 0.9 for p in app.panels)
-    app.set_colour_by(scenes.ColourBy.RESIDUAL)
+    app.set_color_by(scenes.ColorBy.RESIDUAL)
     app.set_ghost(True)
     app.single_step()
     assert all(p.ghost is not None and np.isfinite(p.error) for p in app.panels)
@@ -164,7 +164,7 @@ def test_window_start_compiles_without_precision_warnings(app):
     code = ("from demo.interactive import InteractiveApp\n"
             "app = InteractiveApp('stiffness_sweep', size=(160, 90), show_window=False)\n"
             "app.set_ghost(True); app.toggle_play(); app.run(max_frames=2)\n"
-            "app.set_colour_by(app.colour_by.__class__.RESIDUAL); app.run(max_frames=3)\n")
+            "app.set_color_by(app.color_by.__class__.RESIDUAL); app.run(max_frames=3)\n")
     run = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300,
                          env={**os.environ, "TI_OFFLINE_CACHE": "0"})
     assert run.returncode == 0, run.stderr[-2000:]

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 import solver
-from demo import colours
+from demo import colors
 from demo.compose import FrameComposer
 from demo.render import Body, Camera, GridPlane, Renderer, Viewport
 from demo.runner import SceneRunner
@@ -22,7 +22,7 @@ def bar():
 def draw(bar, camera, width=64, height=48, ghost=None, grid=None):
     vertices, faces = bar
     renderer = Renderer(width, height)
-    renderer.draw(Body(vertices, faces, colours.uniform(len(vertices), (1.0, 1.0, 1.0)), ghost), camera, grid=grid)
+    renderer.draw(Body(vertices, faces, colors.uniform(len(vertices), (1.0, 1.0, 1.0)), ghost), camera, grid=grid)
     return renderer.image()
 
 
@@ -63,7 +63,7 @@ def test_ghost_and_viewports(bar):
     assert (plain != with_ghost).any(axis=2).sum() > 50
     vertices, faces = bar
     renderer = Renderer(64, 48)
-    body = Body(vertices, faces, colours.uniform(len(vertices)))
+    body = Body(vertices, faces, colors.uniform(len(vertices)))
     renderer.draw(body, camera, Viewport(0, 0, 32, 48))
     renderer.draw(body, camera, Viewport(32, 0, 32, 48))
     image = renderer.image()
@@ -75,7 +75,7 @@ def test_cached_background_follows_the_camera(bar):
     near = Camera(eye=(0.5, -2.0, 0.05), target=(0.5, 0.0, 0.05), fov_degrees=40)
     far = Camera(eye=(0.5, -3.0, 0.6), target=(0.5, 0.0, 0.0), fov_degrees=50)
     vertices, faces = bar
-    body = Body(vertices, faces, colours.uniform(len(vertices)))
+    body = Body(vertices, faces, colors.uniform(len(vertices)))
     reused = Renderer(64, 48)
     reused.draw(body, near, grid=GridPlane())
     reused.draw(body, far, grid=GridPlane(spacing=0.05))

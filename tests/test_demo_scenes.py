@@ -45,7 +45,7 @@ def test_every_scene_builds_and_steps(name):
     assert len(states) == len(scenes.get(name).panels)
     for state, x0 in zip(states, rest):
         assert np.isfinite(state.positions).all()
-        assert state.colours.shape == state.positions.shape
+        assert state.colors.shape == state.positions.shape
         assert state.lines and state.lines[0]
     scene = scenes.get(name)
     moves = scene.gravity != (0.0, 0.0, 0.0) or any(p.kinematic for p in scene.panels)
@@ -198,11 +198,11 @@ def test_ghost_switched_back_on_restarts_from_the_body():
     assert np.abs(state.ghost - x_n).max() < 0.05
 
 
-def test_colouring_scene_needs_only_the_colouring():
+def test_coloring_scene_needs_only_the_coloring():
     """The colouring picture builds no Simulation (a homework starter draws it once task 2 alone is done),
     and shows exactly the colour sets a Simulation of the same panel would solve."""
     import solver
-    from demo.colours import FIXED_COLOUR
+    from demo.colors import FIXED_RGB
     from demo.runner import RestPanel, _mask
 
     scene = scenes.get("colouring")
@@ -219,7 +219,7 @@ def test_colouring_scene_needs_only_the_colouring():
     assert state.lines[1] == f"{sim.n_colors} colours for {mesh.n_vertices} vertices"
     pinned = sim.colors < 0
     assert pinned.any()
-    np.testing.assert_array_equal(state.colours[pinned], np.tile(FIXED_COLOUR, (pinned.sum(), 1)))
+    np.testing.assert_array_equal(state.rgb[pinned], np.tile(FIXED_RGB, (pinned.sum(), 1)))
 
 
 @pytest.mark.slow

@@ -218,7 +218,7 @@ def implement(starter: Path, task_id: str, extra_line: str = ""):
         path.write_text("".join(lines[:first] + body + lines[at + 1:]))
 
 
-def test_colouring_picture_needs_only_the_colouring_task(tmp_path):
+def test_coloring_picture_needs_only_the_coloring_task(tmp_path):
     """`demo render colouring` in a starter: stops with the colouring TODO, renders once task 2 alone is
     done, and computes the colouring with the student's code even where the solution cached one."""
     import numpy as np

@@ -87,7 +87,7 @@ def test_zero_force_at_rest_and_under_rigid_motion():
         sim.end_step()
 
 
-def test_G_never_increases_after_a_colour_sweep():
+def test_G_never_increases_after_a_color_sweep():
     sim = cantilever(1e5, cells=(12, 3, 3), initial_guess=solver.InitialGuess.PREVIOUS)
     sim.set_velocities(np.random.default_rng(2).standard_normal((sim.mesh.n_vertices, 3)))
     sim.begin_step()

@@ -9,7 +9,7 @@ from solver.topology import vertex_neighbours
 pytestmark = pytest.mark.task("coloring")
 
 
-def colour(tets, n, order=VertexOrder.NATURAL):
+def color(tets, n, order=VertexOrder.NATURAL):
     require("coloring")
     return color_vertices(tets, n, order)       # no cache key: your _greedy always runs
 
@@ -22,9 +22,9 @@ def shuffled(mesh, seed):
 
 
 @pytest.mark.parametrize("cells", [(1, 1, 1), (6, 2, 2), (20, 3, 3)])
-def test_colouring_is_valid(cells):
+def test_coloring_is_valid(cells):
     mesh = bar(cells=cells)
-    result = colour(mesh.tets, mesh.n_vertices)
+    result = color(mesh.tets, mesh.n_vertices)
     assert result.colors.shape == (mesh.n_vertices,)
     assert is_valid_coloring(mesh.tets, result.colors), "two vertices of one tet share a colour"
     assert result.n_colors == result.colors.max() + 1
@@ -32,9 +32,9 @@ def test_colouring_is_valid(cells):
 
 
 @pytest.mark.parametrize("order", [VertexOrder.NATURAL, VertexOrder.LARGEST_FIRST])
-def test_every_vertex_gets_the_first_free_colour(order):
+def test_every_vertex_gets_the_first_free_color(order):
     tets, n = shuffled(bar(cells=(10, 3, 2)), seed=5)
-    result = colour(tets, n, order)
+    result = color(tets, n, order)
     offsets, neighbours = vertex_neighbours(tets, n)
     degree = np.diff(offsets)
     visit = np.arange(n) if order is VertexOrder.NATURAL else np.argsort(-degree, kind="stable")
@@ -50,7 +50,7 @@ def test_every_vertex_gets_the_first_free_colour(order):
 
 def test_a_larger_shuffled_mesh():
     tets, n = shuffled(bar(cells=(16, 4, 4)), seed=1)
-    result = colour(tets, n)
+    result = color(tets, n)
     assert is_valid_coloring(tets, result.colors)
     offsets, _ = vertex_neighbours(tets, n)
     assert result.n_colors <= np.diff(offsets).max() + 1     # greedy never needs more than degree + 1

@@ -18,7 +18,7 @@ def test_every_iteration_lowers_the_incremental_potential():
     assert (np.diff(G) <= 1e-10 * np.abs(G).max()).all(), "an iteration increased G"
 
 
-def test_the_last_colour_is_solved_exactly():
+def test_the_last_color_is_solved_exactly():
     require("vbd_sweep")
     sim = simulation(bar(), youngs_modulus=1e5)
     sim.begin_step()

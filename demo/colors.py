@@ -1,8 +1,8 @@
 """Colour maps: a sequential map for scalar fields and a palette for colour sets (RGB in [0, 1])."""
 import numpy as np
 
-BODY_COLOUR = (0.30, 0.55, 0.85)
-FIXED_COLOUR = (0.35, 0.35, 0.38)
+BODY_RGB = (0.30, 0.55, 0.85)
+FIXED_RGB = (0.35, 0.35, 0.38)
 
 # Dark blue -> teal -> green -> yellow, in the spirit of perceptually ordered maps.
 _SEQUENTIAL_STOPS = np.array([
@@ -41,10 +41,10 @@ def categorical(index):
     """RGB per integer label; negative labels (fixed vertices) are grey."""
     index = np.asarray(index)
     rgb = _PALETTE[np.mod(index, len(_PALETTE))]
-    rgb[index < 0] = FIXED_COLOUR
+    rgb[index < 0] = FIXED_RGB
     return rgb
 
 
-def uniform(n, rgb=BODY_COLOUR):
+def uniform(n, rgb=BODY_RGB):
     """The same colour for n vertices."""
     return np.tile(np.asarray(rgb, float), (n, 1))
