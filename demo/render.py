@@ -219,7 +219,7 @@ def _background(background: ti.types.ndarray(dtype=ti.u8, ndim=3), frame: ti.typ
 def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), background: ti.types.ndarray(dtype=ti.u8, ndim=3),
            key: ti.types.ndarray(dtype=ti.i64, ndim=2),
            screen: ti.types.ndarray(dtype=ti.f32, ndim=2), faces: ti.types.ndarray(dtype=ti.i32, ndim=2),
-           rgb: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
+           vertex_rgb: ti.types.ndarray(dtype=ti.f32, ndim=2), light: ti.types.ndarray(dtype=ti.f32, ndim=1),
            ghost_key: ti.types.ndarray(dtype=ti.i64, ndim=2), ghost_light: ti.types.ndarray(dtype=ti.f32, ndim=1),
            has_ghost: ti.i32, nearest: ti.i32, x0: ti.i32, y0: ti.i32, x1: ti.i32, y1: ti.i32):
     # one thread per row, columns in order: cheaper on the CPU than a flattened 2D range
@@ -253,7 +253,7 @@ def _shade(image: ti.types.ndarray(dtype=ti.u8, ndim=3), background: ti.types.nd
                     base = ti.Vector([0.0, 0.0, 0.0])
                     for j in ti.static(range(3)):
                         v = faces[f, j]
-                        base += w[j] * ti.Vector([rgb[v, 0], rgb[v, 1], rgb[v, 2]])
+                        base += w[j] * ti.Vector([vertex_rgb[v, 0], vertex_rgb[v, 1], vertex_rgb[v, 2]])
                     rgb = base * light[f]
                 if g != empty:
                     gf = ti.cast(g & ti.i64(0xFFFFFFFF), ti.i32)
@@ -323,8 +323,8 @@ class Renderer:
             _clear(self._ghost_key, *box)
             _rasterise(ghost_screen, faces, self._ghost_key, *box)
         self._ensure_background(box, frame, focal, grid)
-        rgb = np.ascontiguousarray(body.rgb, dtype=np.float32)
-        _shade(self._image, self._background, self._key, screen, faces, rgb, light, self._ghost_key, ghost_light,
+        vertex_rgb = np.ascontiguousarray(body.rgb, dtype=np.float32)
+        _shade(self._image, self._background, self._key, screen, faces, vertex_rgb, light, self._ghost_key, ghost_light,
                int(has_ghost), int(body.nearest_vertex), *box)
 
     def forget_background(self):
