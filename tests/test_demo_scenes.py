@@ -45,7 +45,7 @@ def test_every_scene_builds_and_steps(name):
     assert len(states) == len(scenes.get(name).panels)
     for state, x0 in zip(states, rest):
         assert np.isfinite(state.positions).all()
-        assert state.colors.shape == state.positions.shape
+        assert state.rgb.shape == state.positions.shape
         assert state.lines and state.lines[0]
     scene = scenes.get(name)
     moves = scene.gravity != (0.0, 0.0, 0.0) or any(p.kinematic for p in scene.panels)

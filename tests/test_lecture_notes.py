@@ -138,7 +138,7 @@ def test_figure_check_catches_changed_code_parameters_and_pictures(tmp_path):
     assert _propagation_problems(root, out, size=(640, 280))              # another --size
     edits = [("demo/scenes.py", "frames=41, fps=5", "frames=41, fps=6"),     # a scene parameter
              ("demo/figures.py", "saved = (1, 5, 20, 40)", "saved = (1, 5, 20, 30)"),   # the section's own code
-             ("demo/figures.py", "colours=256", "colours=255"),              # a helper the section calls
+             ("demo/figures.py", "n_colors=256", "n_colors=255"),              # a helper the section calls
              ("solver/material.py", "alpha = 1.0 + mu / lam\n", "alpha = 1.0 + 0.5 * mu / lam\n")]   # the solver
     for name, old, new in edits:
         path = root / name
