@@ -55,6 +55,10 @@ class InteractiveApp:
     """One window showing one scene's panels side by side in 3D, with controls."""
 
     def __init__(self, scene_name=scenes.DEFAULT_SCENE, arch="cpu", size=(1280, 720), show_window=True):
+        if not hasattr(ti, "ui"):
+            raise DemoError(f"the interactive window needs Taichi's GGUI, which {ti.__name__} lacks; "
+                            "pip install taichi==1.7.4 (CPython 3.10-3.13). Headless rendering still works: "
+                            "python -m demo render")
         if show_window:
             check_display()
         solver.ensure_taichi(arch=arch)

@@ -24,7 +24,7 @@ def app():
     try:
         return InteractiveApp("stiffness_sweep", size=(320, 180), show_window=False)
     except DemoError as e:
-        pytest.skip(f"no Vulkan for GGUI here ({e}); install mesa-vulkan-drivers libvulkan1")
+        pytest.skip(f"no GGUI window here: {e}")
 
 
 def test_loop_runs_and_draws(app):
