@@ -164,3 +164,13 @@ def test_a_solver_giving_no_descent_direction_warns_and_falls_back(monkeypatch):
         result = newton.solve(p, x0, tolerance=1e-12)
     assert result.converged
     assert np.abs(result.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
+
+
+def test_time_budget_stops_quietly_after_the_iteration_that_exceeds_it():
+    p = _bar_with_ground()
+    x0 = p.y_with_constraints()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = global_newton(p.tets, p.free).solve(p, x0, tolerance=1e-12, keep_iterates=True, time_budget=0.0)
+    assert result.iterations == 1 and not result.converged and len(result.iterates) == 1
+    assert result.history[1].energy < result.history[0].energy
