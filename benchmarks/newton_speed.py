@@ -218,7 +218,7 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     rows, curve_rows = [], []
     measure_steps(rows, "converged step", *step_bar, repeats, 50, direct)
-    measure_steps(rows, "one iteration", *iteration_bar, max(1, repeats // 2), 1, direct)
+    measure_steps(rows, "one iteration", *iteration_bar, repeats, 1, direct)
     for size, cells in curve_bars:
         measure_curves(curve_rows, rows, size, cells, states, budget, curve_names)
     write_csv(os.path.join(args.out, "newton_speed.csv"), rows)

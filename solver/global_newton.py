@@ -145,7 +145,7 @@ class GlobalNewton:
         if problem.tets.shape != p.tets.shape or not np.array_equal(problem.free, p.free) \
                 or not np.array_equal(problem.tets, p.tets):
             raise ConfigError("this GlobalNewton was built for another mesh or free mask; "
-                              "use solver.global_newton(problem.tets, problem.free) for this problem")
+                              "use solver.global_newton.global_newton(problem.tets, problem.free) for this problem")
 
     def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray) -> np.ndarray:
         """d (N, 3) solving H d = -g on the free vertices (0 elsewhere); falls back to SuperLU, then

@@ -379,8 +379,8 @@ def ground_arguments(ground):
 
 class StepKernels:
     """G, dG/dx and the projected Hessian of one `StepProblem` on a `HessianPattern`, by the kernels
-    above. Arrays are converted once in the constructor; the calls allocate nothing but `gradient`'s
-    output."""
+    above. Arrays are converted once in the constructor; after the first call (which compiles the
+    kernels once per process) no call compiles or allocates Taichi memory."""
 
     def __init__(self, pattern: HessianPattern, problem):
         self.pattern = pattern

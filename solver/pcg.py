@@ -259,7 +259,7 @@ class NewtonPCG:
         if problem.tets.shape != p.tets.shape or not np.array_equal(problem.free, p.free) \
                 or not np.array_equal(problem.tets, p.tets):
             raise ConfigError("this NewtonPCG was built for another mesh or free mask; "
-                              "use solver.newton_pcg(problem.tets, problem.free) for this problem")
+                              "use solver.pcg.newton_pcg(problem.tets, problem.free) for this problem")
         kernels = StepKernels(p, problem)
         state = dict(g0=None, direct=False, direct_iterations=0)
         cg_counts = []

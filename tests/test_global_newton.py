@@ -164,3 +164,31 @@ def test_a_solver_giving_no_descent_direction_warns_and_falls_back(monkeypatch):
         result = newton.solve(p, x0, tolerance=1e-12)
     assert result.converged
     assert np.abs(result.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
+
+
+def test_time_budget_stops_quietly_after_the_iteration_that_exceeds_it():
+    p = _bar_with_ground()
+    x0 = p.y_with_constraints()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = global_newton(p.tets, p.free).solve(p, x0, tolerance=1e-12, keep_iterates=True, time_budget=0.0)
+    assert result.iterations == 1 and not result.converged and len(result.iterates) == 1
+    assert result.history[1].energy < result.history[0].energy
+
+
+def test_a_failed_line_search_warns_and_keeps_the_last_iterate(monkeypatch):
+    """When no step length decreases G (here: G reported as +inf away from x0), the solve stops with a
+    warning naming the line search, and returns the last iterate, never NaN."""
+    p = _bar_with_ground()
+    x0 = p.y_with_constraints()
+    start = np.ascontiguousarray(x0, dtype=np.float64)
+    real_energy = StepKernels.energy
+    monkeypatch.setattr(StepKernels, "energy",
+                        lambda self, x: real_energy(self, x) if np.array_equal(x, start) else np.inf)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = global_newton(p.tets, p.free).solve(p, x0)
+    messages = [str(w.message) for w in caught]
+    assert any("line search could not decrease G" in m for m in messages), messages
+    assert not result.converged and result.iterations == 0
+    np.testing.assert_array_equal(result.x, start)
