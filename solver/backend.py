@@ -38,24 +38,26 @@ def _warn(message: str) -> None:
     warnings.warn_explicit(message, UserWarning, filename="solver", lineno=0)
 
 
-def ensure_taichi(arch: str = "cpu") -> None:
+def ensure_taichi(arch=None) -> None:
     """Initialise Taichi once; later calls keep whatever backend is already running, with one
     warning when they ask for another one.
 
-    ``arch`` is ``"cpu"`` or ``"gpu"`` (CUDA, which supports float64). ``"gpu"`` falls back to the
-    CPU with one warning when no CUDA GPU is available.
+    ``arch`` is ``"cpu"``, ``"gpu"`` (CUDA, which supports float64) or None (whatever runs already,
+    else the CPU). ``"gpu"`` falls back to the CPU with one warning when no CUDA GPU is available.
     """
-    if arch not in ("cpu", "gpu"):
+    if arch not in (None, "cpu", "gpu"):
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
     running = _ti.initialised_arch()
-    if running is not None:
+    if running is not None and arch is not None:
         on_cpu = running in (ti.x64, ti.arm64)
         if (arch == "gpu") == on_cpu and arch not in _warned_mismatch:
             _warned_mismatch.add(arch)
             name = "the CPU" if on_cpu else "the GPU"
             _warn(f"arch={arch!r} was asked for, but Taichi already runs on {name} in this process; "
                   f"keeping {name} (start a new process to change the backend)")
+    if running is not None:
         return
+    arch = arch or "cpu"
     if arch == "gpu":
         ti.set_logging_level(ti.ERROR)   # keep the CUDA probe quiet; our own warning says what happened
         if not _ti.is_arch_supported(ti.cuda):

@@ -134,7 +134,8 @@ class Simulation:
     (or to round-off level), checked every `check_every` iterations (a check costs about one
     iteration); kinematic: vertices whose positions `kinematic_motion(t, rest)` scripts, rest
     being their (K, 3) rest positions and the result their (K, 3) positions at time t;
-    precision: "float64" or "float32"; arch: "cpu" or "gpu"; coloring_order: a `VertexOrder`;
+    precision: "float64" or "float32"; arch: "cpu", "gpu" or None (the backend Taichi already runs on,
+    else the CPU); coloring_order: a `VertexOrder`;
     translation_correction: end every step of a body without fixed or kinematic vertices with the
     rigid-translation correction (`translation.py`), which removes the sideways drift of unconverged
     VBD; keep_orientation: never let an upright tet invert (the guess and every vertex step are
@@ -161,7 +162,7 @@ class Simulation:
                  fixed=None, iterations: int = 100, initial_guess: InitialGuess = InitialGuess.ADAPTIVE,
                  chebyshev_rho: Optional[float] = None, damping: float = 0.0, ground: Optional[Ground] = None,
                  tolerance: Optional[float] = None, check_every: int = 5, kinematic=None,
-                 kinematic_motion: Optional[Callable] = None, precision="float64", arch: str = "cpu",
+                 kinematic_motion: Optional[Callable] = None, precision="float64", arch: Optional[str] = None,
                  coloring_order: VertexOrder = VertexOrder.NATURAL,
                  translation_correction: bool = True, keep_orientation: bool = False,
                  method=Method.VBD, record_history: bool = False):
