@@ -29,21 +29,20 @@ J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a t
 
 
 @ti.func
-def tet_kinematics(state: ti.template(), i, others: ti.template(), adj_f: ti.template(), e):
-    """F m_i, J = det F and w = dJ/dx_i of the tet behind adjacency entry e of vertex i.
+def tet_kinematics(state: ti.template(), x_i, j, a):
+    """F m_i, J = det F and w = dJ/dx_i of one tet around vertex i at x_i: j (3,) its other vertices
+    (`others[e]`), a (ADJ_FLOATS,) its row of `adj_f`, both read once per adjacency entry e.
 
     With d_j = x_j - x_i for the other three vertices: F m_i = sum_j q_j d_j, and
     det(Ds) = d_1 . n with n = (d_2 - d_1) x (d_3 - d_1) the area normal of the face opposite i,
     so J = c d_1 . n and w = dJ/dx_i = -c n. No 3x3 matrix product is needed.
     """
-    x_i = state[X, i]
-    j = others[e]
     d1 = state[X, j[0]] - x_i
     d2 = state[X, j[1]] - x_i
     d3 = state[X, j[2]] - x_i
     n = (d2 - d1).cross(d3 - d1)
-    c = adj_f[e][C]
-    return adj_f[e][Q] * d1 + adj_f[e][Q + 1] * d2 + adj_f[e][Q + 2] * d3, c * d1.dot(n), -c * n
+    c = a[C]
+    return a[Q] * d1 + a[Q + 1] * d2 + a[Q + 2] * d3, c * d1.dot(n), -c * n
 
 
 @ti.func
@@ -57,15 +56,17 @@ def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.tem
     i = color_order[k]
     h = params[TIME_STEP]
     mu, lam = params[MU], params[LAM]
+    x_i = state[X, i]
     # BEGIN SOLUTION task=vbd_sweep
     m_h2 = mass[i] / (h * h)
-    f = m_h2 * (state[Y, i] - state[X, i])
+    f = m_h2 * (state[Y, i] - x_i)
     H = ti.Matrix.diag(3, m_h2)
     f_el = ti.Vector.zero(dtype, 3)
     H_el = ti.Matrix.zero(dtype, 3, 3)
     for e in range(offsets[k], offsets[k + 1]):
-        Fm, J, w = tet_kinematics(state, i, others, adj_f, e)
-        df, dH = vertex_force_hessian(Fm, J, w, adj_f[e][M_SQ], adj_f[e][VOLUME], mu, lam)
+        a = adj_f[e]
+        Fm, J, w = tet_kinematics(state, x_i, others[e], a)
+        df, dH = vertex_force_hessian(Fm, J, w, a[M_SQ], a[VOLUME], mu, lam)
         f_el += df
         H_el += dH
     f += f_el
@@ -73,10 +74,10 @@ def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.tem
     # END SOLUTION
     k_d = params[DAMPING]
     if k_d > 0:
-        f -= (k_d / h) * (H_el @ (state[X, i] - state[X_N, i]))
+        f -= (k_d / h) * (H_el @ (x_i - state[X_N, i]))
         H += (k_d / h) * H_el
     if params[GROUND] > 0:
-        f_c, H_c = ground_force_hessian(state[X, i], state[X, i] - state[X_N, i], h, params[GROUND_HEIGHT],
+        f_c, H_c = ground_force_hessian(x_i, x_i - state[X_N, i], h, params[GROUND_HEIGHT],
                                         params[GROUND_STIFFNESS], params[FRICTION], params[FRICTION_SPEED],
                                         dtype)
         f += f_c
@@ -93,8 +94,9 @@ def step_limit(state: ti.template(), others: ti.template(), adj_f: ti.template()
     a tet that shrinks (w . dx < 0) allows alpha <= (J - J_MIN) / -(w . dx).
     """
     alpha = 1.0
+    x_i = state[X, i]
     for e in range(offsets[k], offsets[k + 1]):
-        _, J, w = tet_kinematics(state, i, others, adj_f, e)
+        _, J, w = tet_kinematics(state, x_i, others[e], adj_f[e])
         dJ = w.dot(dx)
         if J + dJ < J_MIN and dJ < 0:
             alpha = ti.min(alpha, ti.max(J - J_MIN, 0) / -dJ)
