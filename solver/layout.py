@@ -5,6 +5,7 @@ is compiled once per process and shared by every `Simulation`; a kernel launch p
 arrays, so the per-vertex 3-vectors live as rows of one (STATE_ROWS, N) array of 3-vectors and the
 scalar settings as one (PARAM_COUNT,) array.
 """
+from ._ti import ti
 
 # Rows of `state`, shape (STATE_ROWS, N) of 3-vectors.
 X = 0          # current iterate x
@@ -36,3 +37,10 @@ C = 3
 M_SQ = 4
 VOLUME = 5
 ADJ_FLOATS = 6
+
+
+@ti.kernel
+def read_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
+    """out[i] = state[row, i]: one row of the state, so that reading positions copies N, not 7N, vectors."""
+    for i in range(out.shape[0]):
+        out[i] = state[row, i]

@@ -248,6 +248,7 @@ class Simulation:
         self._mass = ti.ndarray(dtype, n)
         self._params = ti.ndarray(dtype, L.PARAM_COUNT)
         self._f = ti.Vector.ndarray(3, dtype, n)
+        self._row_buffer = ti.Vector.ndarray(3, dtype, n)
         self._H = ti.Matrix.ndarray(3, 3, dtype, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free_mask.astype(np.int32))
@@ -483,7 +484,8 @@ class Simulation:
         return self._row(L.Y)
 
     def _row(self, row: int) -> np.ndarray:
-        return self.state.to_numpy()[row].astype(np.float64)
+        L.read_row(self.state, row, self._row_buffer)
+        return self._row_buffer.to_numpy().astype(np.float64)
 
     @property
     def colors(self) -> np.ndarray:
