@@ -120,7 +120,7 @@ def simulation_curve(case, sim, budget, max_iterations, sweep=None):
     case.load(sim)
     sim.begin_step()
     per_it = seconds_per_iteration(sweep or sim.run_iterations)
-    sim.end_step()
+    close_step(sim)
     return modelled(rows, rows[0][1], per_it)
 
 
@@ -143,11 +143,17 @@ def run_simulation_curve(case, sim, budget, max_iterations, stop_error=1e-13, sw
         rows.append((k, timer.seconds, err, gap))
         if timer.seconds > budget or err < stop_error or not math.isfinite(err) or err > 1e3:
             break
+    close_step(sim)
+    return rows
+
+
+def close_step(sim):
+    """end_step, or for a step that diverged (Chebyshev rho too high, Jacobi) just close it: the
+    divergence guard puts x back at x_n, and no curve needs the state after it."""
     try:
         sim.end_step()
     except VBDError:
-        pass    # a diverged curve (Chebyshev rho too high, Jacobi): the guard puts x back at x_n
-    return rows
+        pass
 
 
 def run_numpy_curve(case, sim, budget, max_iterations):
