@@ -625,7 +625,7 @@ def section_remedy(out, full, size):
     step, and its labels as a table (the iteration count and the times are measured on this machine)."""
     import numpy as np
 
-    from solver.multilevel import wave_cells
+    from solver.method import wave_cells
 
     from . import scenes
 
