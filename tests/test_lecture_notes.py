@@ -60,7 +60,8 @@ def test_every_figure_exists_and_is_small():
         assert path.stat().st_size < 300_000, f"{link} is large"
     assert total < 2_500_000
     produced = {p.name for p in (NOTES / "figures").glob("*.png")}
-    assert produced == {Path(link).name for link in links}, "figures and notes disagree about which PNGs exist"
+    in_figures = {Path(link).name for link in links if Path(link).parts[0] == "figures"}
+    assert produced == in_figures, "figures and notes disagree about which PNGs exist"
 
 
 @pytest.mark.parametrize("name", CHAPTERS)
