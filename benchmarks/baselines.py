@@ -39,11 +39,10 @@ class JacobiSweep:
         self.dx = ti.Vector.ndarray(3, sim.dtype, max(1, sim.topology.n_slots))
 
     def iterate(self, k: int = 1):
-        s = self.sim
-        color_order, offsets, others, adj_f, _ = s._adjacency
+        a = self.sim.arrays
         for _ in range(k):
-            _jacobi_step(s.state, s._mass, color_order, offsets, others, adj_f, s._params, self.dx, self.omega,
-                         s.dtype)
+            _jacobi_step(a.state, a.mass, a.color_order, a.offsets, a.others, a.adj_f, a.params, self.dx,
+                         self.omega, self.sim.dtype)
 
 
 class NumpyVBD:

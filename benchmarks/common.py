@@ -170,6 +170,14 @@ def _fmt(v):
     return v
 
 
+def format_seconds(v) -> str:
+    """A time for a results table: "12.3 ms", "1.23 s", or "not reached" for inf/NaN."""
+    v = float(v)
+    if not math.isfinite(v):
+        return "not reached"
+    return f"{v * 1e3:.3g} ms" if v < 1 else f"{v:.3g} s"
+
+
 def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
     """A markdown table of `rows` (dicts) restricted to `columns`."""
     fmt = fmt or {}

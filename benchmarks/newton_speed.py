@@ -15,7 +15,6 @@ Times are medians of --repeats runs in one process; on a shared machine they are
     python -m benchmarks.newton_speed --out benchmarks/results/newton_speed
     python -m benchmarks.newton_speed --quick --out /tmp/newton_speed
 """
-import math
 import os
 import sys
 import time
@@ -23,7 +22,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import init_taichi, output_folder, parser, provenance, table, time_to_reach, write_csv
+from benchmarks.common import (format_seconds, init_taichi, output_folder, parser, provenance, table, time_to_reach,
+                               write_csv)
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
@@ -175,22 +175,15 @@ def plot(curve_rows, path):
     plt.close(fig)
 
 
-def _fmt_time(v):
-    v = float(v)
-    if not math.isfinite(v):
-        return "not reached"
-    return f"{v * 1e3:.3g} ms" if v < 1 else f"{v:.3g} s"
-
-
 def report(rows):
     speed = [r for r in rows if r["section"] in ("converged step", "one iteration")]
     parts = [table(speed, ["section", "tets", "method", "seconds", "speedup"],
                    "Median wall time, and speed-up against newton_solve",
-                   {"seconds": _fmt_time, "speedup": lambda v: f"{float(v):.3g}x"})]
+                   {"seconds": format_seconds, "speedup": lambda v: f"{float(v):.3g}x"})]
     curves = [r for r in rows if r["section"] == "time_to_error"]
     cols = ["case", "method"] + [f"t_{t:.0e}" for t in THRESHOLDS[1:]] + ["newton_it_1e-04", "cg_it_1e-04",
                                                                            "final_error"]
-    fmt = {f"t_{t:.0e}": _fmt_time for t in THRESHOLDS}
+    fmt = {f"t_{t:.0e}": format_seconds for t in THRESHOLDS}
     fmt["final_error"] = lambda v: f"{float(v):.2g}"
     parts.append(table(curves, cols, "Time and iterations to relative error 1e-4 / 1e-6 (x* = direct Newton "
                        "to tolerance 1e-12)", fmt))

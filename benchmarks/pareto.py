@@ -29,8 +29,8 @@ import numpy as np
 
 from solver.errors import VBDError
 
-from benchmarks.common import (Timer, init_taichi, output_folder, parser, positive, progress, provenance,
-                               seconds_per_call, spectral_radius, table, time_to_reach, write_csv)
+from benchmarks.common import (Timer, format_seconds, init_taichi, output_folder, parser, positive, progress,
+                               provenance, seconds_per_call, spectral_radius, table, time_to_reach, write_csv)
 
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
 OUTPUTS = ("pareto.csv", "cases.csv", "time_to_error.csv", "pareto.png", "pareto_energy.png", "summary.md")
@@ -363,13 +363,6 @@ def summarise(rows):
     return out
 
 
-def _t(v):
-    v = float(v)
-    if not math.isfinite(v):
-        return "not reached"
-    return f"{v * 1e3:.3g} ms" if v < 1 else f"{v:.3g} s"
-
-
 def _r(v):
     v = float(v)
     return "-" if not math.isfinite(v) else f"{v:.3g}x"
@@ -381,7 +374,7 @@ def report(summary, case_rows):
                     "Newton-PCG (block_jacobi)", "two-level VBD")
     keep = [r for r in summary if r["method"] in main_methods or r.get("best_chebyshev")]
     cols = ["case", "method"] + [f"t_{t:.0e}" for t in THRESHOLDS] + ["final_error"]
-    fmt = {f"t_{t:.0e}": _t for t in THRESHOLDS}
+    fmt = {f"t_{t:.0e}": format_seconds for t in THRESHOLDS}
     fmt["final_error"] = lambda v: f"{float(v):.2g}"
     parts = [table(keep, cols, "Wall time to reach ||x - x*|| / ||x* - x_n|| <= 1e-2, 1e-4, 1e-6 "
                    "(solver time only; 'not reached' within the budget; final_error = error at the end of "

@@ -70,9 +70,10 @@ def _probe_class():
             self.out = ti.ndarray(sim.dtype, sim.topology.n_slots)
 
         def iterate(self, n):
-            s = self.sim
+            a = self.sim.arrays
             for _ in range(n):
-                read_all_colors(s.state, s._mass, *s._adjacency, self.out, s.n_colors)
+                read_all_colors(a.state, a.mass, a.color_order, a.offsets, a.others, a.adj_f, a.color_starts,
+                                self.out, self.sim.n_colors)
 
     return MemoryProbe
 

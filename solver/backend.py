@@ -6,7 +6,7 @@ from enum import Enum
 
 from . import _ti
 from ._ti import ti
-from .errors import ConfigError
+from .errors import ConfigError, enum_value
 
 
 class Precision(Enum):
@@ -22,12 +22,7 @@ class Precision(Enum):
 
 def as_precision(value) -> Precision:
     """Accept a ``Precision`` or its name (``"float64"``/``"float32"``)."""
-    if isinstance(value, Precision):
-        return value
-    try:
-        return Precision(str(value))
-    except ValueError:
-        raise ConfigError(f"unknown precision {value!r}; use 'float64' or 'float32'") from None
+    return enum_value(Precision, value, "precision")
 
 
 _warned_mismatch = set()

@@ -28,7 +28,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .backend import ensure_taichi
-from .errors import ConfigError
+from .errors import ConfigError, enum_value
 from .hessian import HessianPattern, StepKernels
 from .newton import NewtonRecord, NewtonResult
 
@@ -56,13 +56,7 @@ AUTO_QDLDL_MAX_UNKNOWNS = 10_000
 
 def as_linear_solver(value) -> LinearSolver:
     """Accept a `LinearSolver` or its name."""
-    if isinstance(value, LinearSolver):
-        return value
-    try:
-        return LinearSolver(str(value))
-    except ValueError:
-        names = ", ".join(repr(s.value) for s in LinearSolver)
-        raise ConfigError(f"unknown linear solver {value!r}; use one of {names}") from None
+    return enum_value(LinearSolver, value, "linear solver")
 
 
 class DirectSolver:

@@ -40,6 +40,13 @@ ADJ_FLOATS = 6
 
 
 @ti.kernel
+def write_row(state: ti.types.ndarray(), row: ti.i32, values: ti.types.ndarray()):
+    """state[row, i] = values[i]: set one row of the state."""
+    for i in range(values.shape[0]):
+        state[row, i] = values[i]
+
+
+@ti.kernel
 def read_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
     """out[i] = state[row, i]: one row of the state, so that reading positions copies N, not 7N, vectors."""
     for i in range(out.shape[0]):

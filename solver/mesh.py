@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cells import CORNERS, SURFACE_CELLS, linear_cell, split_cells
-from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning
+from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, enum_value
 from .quality import SLIVER_RADIUS_RATIO, MeshQuality, degenerate_mask, mesh_quality, sliver_mask
 from .tetrahedralize import Mesher, tetwild_tets
 
@@ -305,11 +305,7 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
     factor_of = _scale_rule(scale, fit)
     if not isinstance(repair, bool):
         raise ConfigError(f"repair must be True or False, got {repair!r}")
-    try:
-        mesher = Mesher(mesher)
-    except ValueError:
-        raise ConfigError(f"unknown mesher {mesher!r}; use one of: "
-                          f"{', '.join(m.value for m in Mesher)}") from None
+    mesher = enum_value(Mesher, mesher, "mesher")
     if edge_length is not None and mesher is not Mesher.TETWILD:
         raise ConfigError("edge_length only applies to mesher='tetwild'; use resolution for voxels")
     if not os.path.exists(path):

@@ -8,7 +8,7 @@ from enum import Enum
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import enum_value
 
 
 class Method(Enum):
@@ -32,15 +32,14 @@ def wave_cells(mesh, material, dt: float) -> float:
 AUTO_VBD_BELOW = 6.0   # N_c under which plain VBD reaches 1e-2 first (benchmarks/results/multilevel; chapter 7)
 
 
+def multilevel_cycles(iterations: int) -> int:
+    """Two-level cycles per step for a budget of `iterations` fine sweeps: each cycle is 2 + 2 sweeps."""
+    return max(1, iterations // 4)
+
+
 def as_method(value) -> Method:
     """Accept a `Method` or its name ("vbd", "newton", "pcg", "multilevel", "auto")."""
-    if isinstance(value, Method):
-        return value
-    try:
-        return Method(str(value))
-    except ValueError:
-        names = ", ".join(repr(m.value) for m in Method)
-        raise ConfigError(f"unknown method {value!r}; use one of {names}") from None
+    return enum_value(Method, value, "method")
 
 
 def choose(wave_cells: float) -> tuple:

@@ -28,7 +28,7 @@ import numpy as np
 from ._ti import ti
 from .backend import ensure_taichi
 from .coloring import color_vertices
-from .errors import ConfigError
+from .errors import ConfigError, enum_value
 from .global_newton import LinearSolver, global_newton, newton_iterations
 from .hessian import StepKernels
 from .newton import NewtonResult
@@ -174,11 +174,7 @@ class NewtonPCG:
     def __init__(self, tets: np.ndarray, free: np.ndarray, preconditioner=Preconditioner.COLOR_SWEEP,
                  forcing: float = 0.01, max_cg_iterations: int = 500, linear_solver=LinearSolver.AUTO):
         ensure_taichi()
-        try:
-            self.preconditioner = Preconditioner(getattr(preconditioner, "value", preconditioner))
-        except ValueError:
-            names = ", ".join(repr(p.value) for p in Preconditioner)
-            raise ConfigError(f"unknown preconditioner {preconditioner!r}; use one of {names}") from None
+        self.preconditioner = enum_value(Preconditioner, preconditioner, "preconditioner")
         if not 0.0 < forcing < 1.0:
             raise ConfigError(f"forcing must be in (0, 1), got {forcing}")
         if max_cg_iterations < 1:

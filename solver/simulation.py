@@ -17,7 +17,7 @@ The physics lives in free functions beside their numpy twins (`vertex_solve.py`,
 """
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, NamedTuple, Optional
 from weakref import WeakKeyDictionary
 
 import numpy as np
@@ -34,12 +34,27 @@ from .contact import Ground
 from .errors import ConfigError, VBDError
 from .implicit_euler import InitialGuess
 from .material import Material, vertex_force_hessian
-from .method import Method, as_method, choose, wave_cells
+from .method import Method, as_method, choose, multilevel_cycles, wave_cells
 from .mesh import TetMesh
 from .todo import require_implemented
-from .topology import Topology, build_topology
+from .topology import Topology, build_topology, grad_rows
 
-__all__ = ["Ground", "InitialGuess", "IterationRecord", "Simulation"]
+__all__ = ["Ground", "InitialGuess", "IterationRecord", "Simulation", "SweepArrays"]
+
+
+class SweepArrays(NamedTuple):
+    """`Simulation.arrays`: the ti.ndarrays of one simulation's state and settings (`layout.py`) and of
+    its `Topology` (color_order (S,), offsets (S + 1,), others (E, 3), adj_f (E, ADJ_FLOATS),
+    color_starts (C + 1,))."""
+
+    state: object
+    mass: object
+    params: object
+    color_order: object
+    offsets: object
+    others: object
+    adj_f: object
+    color_starts: object
 
 
 @dataclass(frozen=True)
@@ -73,7 +88,7 @@ def _count(value, name: str) -> int:
 
 
 def _index_mask(value, n: int, name: str) -> np.ndarray:
-    """A read-only boolean (n,) mask from None, a boolean mask or an index array."""
+    """A boolean (n,) mask from None, a boolean mask or an index array."""
     mask = np.zeros(n, dtype=bool)
     if value is not None:
         arr = np.asarray(value)
@@ -88,6 +103,10 @@ def _index_mask(value, n: int, name: str) -> np.ndarray:
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise ConfigError(f"{name} has vertex indices outside 0..{n - 1}")
             mask[arr] = True
+    return mask
+
+
+def _read_only(mask: np.ndarray) -> np.ndarray:
     mask.flags.writeable = False
     return mask
 
@@ -116,6 +135,7 @@ _READ_ONLY = {
     "mesh": "the mesh", "fixed_mask": "the fixed vertices", "kinematic_mask": "the kinematic vertices",
     "free_mask": "the free vertices", "precision": "the float type", "arch": "the backend",
     "coloring": "the colouring", "topology": "the adjacency", "method": "the solver",
+    "method_reason": "why the solver was chosen",
 }
 _DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
 _GUESS_REPAIR_PASSES = 10   # each pass puts the vertices of newly inverted tets back to x_n; then all
@@ -178,9 +198,9 @@ class Simulation:
         kinematic_mask = _index_mask(kinematic, n, "kinematic")
         if kinematic_mask.any() and kinematic_motion is None:
             raise ConfigError("kinematic vertices need kinematic_motion(t, rest) -> (K, 3) positions")
-        self.kinematic_mask = kinematic_mask
-        self.fixed_mask = _index_mask(np.flatnonzero(fixed_mask & ~kinematic_mask), n, "fixed")
-        self.free_mask = _index_mask(~(fixed_mask | kinematic_mask), n, "free")
+        self.kinematic_mask = _read_only(kinematic_mask)
+        self.fixed_mask = _read_only(fixed_mask & ~kinematic_mask)
+        self.free_mask = _read_only(~(fixed_mask | kinematic_mask))
         if not self.free_mask.any():
             raise ConfigError("every vertex is fixed or kinematic; nothing is left to simulate")
 
@@ -220,15 +240,23 @@ class Simulation:
 
     def _choose_method(self, method, material, dt):
         method = as_method(method)
-        self.wave_cells = wave_cells(self.mesh, material, float(dt))
         self.method_reason = f"method={method.value} was asked for"
         if method is Method.AUTO:
-            method, self.method_reason = choose(self.wave_cells)
-        if method is not Method.VBD and (self._damping > 0 or (self._ground is not None and self._ground.friction > 0)):
-            raise ConfigError(f"method={method.value!r} minimises G, which has no damping or friction; "
-                              "set damping=0 and ground friction=0, or use method='vbd'")
+            method, self.method_reason = choose(wave_cells(self.mesh, material, float(dt)))
+        self._refuse_non_potential(method, self._damping, self._ground)
         self.method = method
         self._two_level = None
+
+    @staticmethod
+    def _refuse_non_potential(method, damping, ground):
+        if method is not Method.VBD and (damping > 0 or (ground is not None and ground.friction > 0)):
+            raise ConfigError(f"method={method.value!r} minimises G, which has no damping or friction; "
+                              "set damping=0 and ground friction=0, or use method='vbd'")
+
+    @property
+    def wave_cells(self) -> float:
+        """N_c = h sqrt(E / rho) / dx: cells an elastic wave crosses in one step (`method.wave_cells`)."""
+        return wave_cells(self.mesh, self._material, self._dt)
 
     def __setattr__(self, name, value):
         if name in _READ_ONLY and getattr(self, "_constructed", False):
@@ -255,10 +283,10 @@ class Simulation:
         self._translation = ti.Vector.ndarray(3, ti.f64, 2)
 
         X, T = mesh.vertices, mesh.tets
-        Dm = np.stack([X[T[:, k]] - X[T[:, 0]] for k in (1, 2, 3)], axis=-1)
-        Dm_inv = np.linalg.inv(Dm)
-        self._rest_vol = np.abs(np.linalg.det(Dm)) / 6.0
-        self._grad_rows = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
+        self._grad_rows = grad_rows(X, T)                  # (M, 4, 3): rows 1-3 are Dm^-1
+        Dm_inv = self._grad_rows[:, 1:]
+        self._rest_vol = mesh.rest_volumes()
+        self._size = float(np.ptp(X, axis=0).max())      # m, the body's largest extent
         self._tets = ti.Vector.ndarray(4, ti.i32, m)
         self._Dm_inv = ti.Matrix.ndarray(3, 3, dtype, m)
         self._volume = ti.ndarray(dtype, m)
@@ -342,6 +370,8 @@ class Simulation:
         value = _number(value, "damping", "seconds")
         if value < 0:
             raise ConfigError(f"damping must be >= 0 seconds, got {value!r}")
+        if hasattr(self, "method"):
+            self._refuse_non_potential(self.method, value, self._ground)
         self._damping = value
         self._upload_params()
 
@@ -354,6 +384,8 @@ class Simulation:
     def ground(self, value):
         if value is not None and not isinstance(value, Ground):
             raise ConfigError(f"ground must be a solver.Ground or None, got {type(value).__name__}")
+        if hasattr(self, "method"):
+            self._refuse_non_potential(self.method, self._damping, value)
         self._ground = value
         self._upload_params()
 
@@ -383,6 +415,7 @@ class Simulation:
         mass = np.zeros(self.mesh.n_vertices)
         np.add.at(mass, self.mesh.tets.ravel(), np.repeat(material.density * self._rest_vol / 4.0, 4))
         self._mass.from_numpy(mass.astype(self._np_dtype))
+        self._max_mass = float(mass.max())
         self._upload_params()
 
     @property
@@ -488,6 +521,13 @@ class Simulation:
         return self._row_buffer.to_numpy().astype(np.float64)
 
     @property
+    def arrays(self) -> "SweepArrays":
+        """The device arrays the kernels of `vertex_solve` take, for code that launches its own sweeps
+        (baselines, probes): state (STATE_ROWS, N), mass (N,), params, and the `Topology` on the device.
+        Shared, not copied: writing into them changes the simulation."""
+        return SweepArrays(self.state, self._mass, self._params, *self._adjacency)
+
+    @property
     def colors(self) -> np.ndarray:
         """(N,) int32 colour of every vertex, -1 for fixed and kinematic vertices."""
         return np.where(self.free_mask, self.coloring.colors, -1).astype(np.int32)
@@ -513,10 +553,9 @@ class Simulation:
         self._set_rows({L.V: v, L.V_PREV: v_prev})
 
     def _set_rows(self, rows: dict) -> None:
-        state = self.state.to_numpy()
         for row, value in rows.items():
-            state[row] = value
-        self.state.from_numpy(state)
+            self._row_buffer.from_numpy(np.asarray(value, dtype=self._np_dtype))
+            L.write_row(self.state, row, self._row_buffer)
 
     def _checked_state(self, a, name):
         try:
@@ -568,7 +607,7 @@ class Simulation:
     def _multilevel(self):
         from .multilevel import TwoLevelVBD
 
-        cycles = max(1, self._iterations // 4)
+        cycles = multilevel_cycles(self._iterations)
         if self._two_level is None or self._two_level.cycles != cycles:
             self._two_level = TwoLevelVBD(self, cycles=cycles)
         return self._two_level
@@ -609,7 +648,7 @@ class Simulation:
         self.history = []
         self._stop_below = None
         if self._tolerance is not None:
-            weight = float(self.masses.max() * np.linalg.norm(self._gravity))
+            weight = self._max_mass * float(np.linalg.norm(self._gravity))
             eps = np.finfo(self._np_dtype).eps
             roundoff = 100 * eps * self._material.mu * float(np.mean(self._rest_vol)) ** (2 / 3)
             self._stop_below = max(self._tolerance * max(self.max_residual(), weight), roundoff)
@@ -660,7 +699,7 @@ class Simulation:
                                            self._params, self._translation, self.dtype)
             translation.translate(self.state, color_order, self._translation, self.dtype)
         moved = implicit_euler.largest_displacement(self.state)
-        size = float(np.ptp(self.mesh.vertices, axis=0).max())
+        size = self._size
         if not moved <= 10 * size:
             implicit_euler.return_to_start(self.state)
             self._in_step = False

@@ -120,7 +120,7 @@ def test_a_diverging_panel_stops_with_a_message_in_the_window(app):
         app.run(max_frames=app.frames_drawn + 1)
         if app.panels[0].failure:
             break
-    assert "diverged" in app.panels[0].failure and "lower Chebyshev rho" in app.panels[0].failure
+    assert "diverged" in app.panels[0].failure and "lower chebyshev_rho" in app.panels[0].failure
     assert app.panels[0].failure in " ".join(" ".join(app.panel_lines(0, 200)).split())
     stopped_at, other = app.panels[0].sim.frame, app.panels[1].sim.frame
     app.run(max_frames=app.frames_drawn + 1)

@@ -43,6 +43,22 @@ def test_global_methods_refuse_forces_that_are_not_potentials(kwargs):
         solver.Simulation(MESH, solver.Material(1e6, 0.3), fixed=FIXED, method="newton", **kwargs)
 
 
+def test_global_methods_refuse_damping_assigned_later():
+    sim = solver.Simulation(MESH, solver.Material(1e6, 0.3), fixed=FIXED, method="newton")
+    with pytest.raises(solver.ConfigError, match="damping"):
+        sim.damping = 0.1
+    with pytest.raises(solver.ConfigError, match="friction"):
+        sim.ground = solver.Ground(friction=0.5)
+    assert sim.damping == 0.0 and sim.ground is None
+
+
+def test_wave_cells_follow_the_live_material():
+    sim = solver.Simulation(MESH, solver.Material(1e4, 0.3, 1000.0), fixed=FIXED)
+    soft = sim.wave_cells
+    sim.material = solver.Material(1e6, 0.3, 1000.0)
+    assert sim.wave_cells == pytest.approx(10 * soft)
+
+
 def test_unknown_method_is_a_config_error():
     with pytest.raises(solver.ConfigError, match="unknown method"):
         solver.Simulation(MESH, solver.Material(1e6, 0.3), fixed=FIXED, method="jacobi")
