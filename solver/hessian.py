@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ._ti import ti
-from .material import cofactor
+from .material import cofactor, dpsi_dF, psi
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 _PAIRS = ((1, 2, 0), (0, 2, 1), (0, 1, 2))    # (i, j, k): the pair and the third index
@@ -221,10 +221,8 @@ def energy_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types.n
                   ground_height: ti.f64, ground_stiffness: ti.f64) -> ti.f64:
     """G(x) in J. Arrays as in `StepProblem`; free is (N,) int32."""
     total = 0.0
-    alpha = 1.0 + mu / lam
     for t in range(tets.shape[0]):
-        F = _deformation_gradient(x, tets, grad_rows, t)
-        total += volumes[t] * (0.5 * mu * ((F * F).sum() - 3.0) + 0.5 * lam * (F.determinant() - alpha) ** 2)
+        total += volumes[t] * psi(_deformation_gradient(x, tets, grad_rows, t), mu, lam)
     for i in range(x.shape[0]):
         if free[i] != 0:
             d = _vec3(x, i) - _vec3(y, i)
@@ -239,13 +237,12 @@ def gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types
                     free: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64, has_ground: ti.i32,
                     ground_height: ti.f64, ground_stiffness: ti.f64, g: ti.types.ndarray()):
     """g (N, 3) = dG/dx, zero at constrained vertices."""
-    alpha = 1.0 + mu / lam
     for i in range(x.shape[0]):
         for c in ti.static(range(3)):
             g[i, c] = 0.0
     for t in range(tets.shape[0]):
         F = _deformation_gradient(x, tets, grad_rows, t)
-        P = mu * F + lam * (F.determinant() - alpha) * cofactor(F)
+        P = dpsi_dF(F, mu, lam)
         for k in ti.static(range(4)):
             v = tets[t, k]
             if free[v] != 0:
