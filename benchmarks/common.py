@@ -13,6 +13,10 @@ import time
 
 import numpy as np
 
+os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")   # Taichi's banner stays off stdout (tables go there)
+
+from demo.cli import HelpFormatter  # noqa: E402  (imports taichi)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -20,15 +24,6 @@ def fail(message: str):
     """End a benchmark command with a one-line error (exit status 2), no traceback."""
     print(f"error: {message}", file=sys.stderr)
     raise SystemExit(2)
-
-
-class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Adds "(default: ...)" to an option's help unless the help already says its default."""
-
-    def _get_help_string(self, action):
-        if "default" in (action.help or "") or action.default in (None, "") or isinstance(action.default, bool):
-            return action.help
-        return super()._get_help_string(action)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -105,14 +100,8 @@ def spectral_radius(text):
     return value
 
 
-def quiet_taichi_banner():
-    """Keep Taichi's version banner off stdout, where the summary tables go (call before importing it)."""
-    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
-
-
 def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     """ti.init on the CPU in float64, optionally with a thread cap and the kernel profiler."""
-    quiet_taichi_banner()
     from solver._ti import ti
 
     kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)

@@ -27,10 +27,9 @@ import warnings
 
 import numpy as np
 
-from solver.errors import VBDError
-
 from benchmarks.common import (Timer, format_seconds, init_taichi, output_folder, parser, positive, progress,
                                provenance, seconds_per_call, spectral_radius, table, time_to_reach, write_csv)
+from solver.errors import VBDError
 
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
 OUTPUTS = ("pareto.csv", "cases.csv", "time_to_error.csv", "pareto.png", "pareto_energy.png", "summary.md")

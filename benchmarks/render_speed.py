@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import output_folder, parser, positive, progress, quiet_taichi_banner
+from benchmarks.common import output_folder, parser, positive, progress
 
 OUTPUTS = ("render_speed.csv", "render_speed_frame.png")
 
@@ -62,7 +62,6 @@ def main(argv=None):
     width, height = args.size
     cells = args.cells
 
-    quiet_taichi_banner()
     from PIL import Image
 
     import solver
