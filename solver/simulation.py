@@ -28,7 +28,7 @@ from . import implicit_euler, orientation
 from . import layout as L
 from . import translation, vertex_solve
 from .backend import as_precision, ensure_taichi
-from .chebyshev import chebyshev_omega, chebyshev_update
+from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
 from .coloring import Coloring, VertexOrder, color_vertices
 from .contact import Ground
 from .errors import ConfigError, VBDError
@@ -224,8 +224,6 @@ class Simulation:
         ensure_taichi(arch)
         self.arch = arch
         require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.newton_step)
-        if chebyshev_rho is not None:
-            require_implemented(chebyshev_omega, chebyshev_update)
         self._choose_method(method, material, dt)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
         self.topology: Topology = build_topology(mesh.vertices, mesh.tets,
@@ -396,7 +394,10 @@ class Simulation:
 
     @chebyshev_rho.setter
     def chebyshev_rho(self, value):
-        self._rho = _rho(value)
+        rho = _rho(value)
+        if rho is not None:
+            require_implemented(chebyshev_omega, chebyshev_update)
+        self._rho = rho
 
     @property
     def material(self) -> Material:
@@ -666,8 +667,9 @@ class Simulation:
             if self._rho is not None:
                 self._omega = chebyshev_omega(self._iteration, self._rho, self._omega)
             vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
-                                       self._params, self._omega, int(self._rho is not None), self.n_colors,
-                                       self.dtype)
+                                       self._params, self.n_colors, self.dtype)
+            if self._rho is not None:
+                chebyshev_step(self.state, color_order, self._omega, self.dtype)
             ran += 1
             if self.record_history:
                 self.history.append(IterationRecord(self._iteration, self.energy(), self.max_residual()))

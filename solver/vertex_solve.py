@@ -17,7 +17,6 @@ params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 """
 from ._ti import ti
 
-from .chebyshev import chebyshev_update
 from .contact import ground_force_hessian
 from .layout import (ADJ_FLOATS, C, DAMPING, FRICTION, FRICTION_SPEED, GROUND, GROUND_HEIGHT,
                      GROUND_STIFFNESS, KEEP_ORIENTATION, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
@@ -132,18 +131,15 @@ def solve_vertex(state: ti.template(), mass: ti.template(), color_order: ti.temp
 @ti.kernel
 def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                   offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
-                  color_starts: ti.types.ndarray(), params: ti.types.ndarray(), omega: ti.f64,
-                  accelerate: ti.i32, n_colors: ti.template(), dtype: ti.template()):
-    """One VBD iteration: each colour in turn, all vertices of a colour in parallel, then the
-    Chebyshev step (VBD Eq. 18) when `accelerate` is 1.
+                  color_starts: ti.types.ndarray(), params: ti.types.ndarray(), n_colors: ti.template(),
+                  dtype: ti.template()):
+    """One VBD iteration: each colour in turn, all vertices of a colour in parallel.
 
     color_starts (n_colors + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
     """
     for c in ti.static(range(n_colors)):
         for k in range(color_starts[c], color_starts[c + 1]):
             solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-    for k in range(color_starts[n_colors] * accelerate):
-        chebyshev_update(state, color_order[k], ti.cast(omega, dtype))
 
 
 @ti.kernel

@@ -286,6 +286,24 @@ def test_graded_tests_pass_on_the_solution(tmp_path):
     assert all(t["passed"] for t in report["tests"].values())
 
 
+@pytest.mark.slow
+def test_each_task_scores_without_the_tasks_after_it(tmp_path):
+    """Tasks 1-3 done and Chebyshev still a TODO: the sweep's tests pass (no kernel of the sweep compiles
+    the Chebyshev TODO) and only the Chebyshev tests fail, with their TODO."""
+    out = tmp_path / "hw"
+    homework.generate(out, quiet=True)
+    for task in ("force_hessian", "coloring", "vbd_sweep"):
+        implement(out, task)
+    score = tmp_path / "score.json"
+    run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], out, VBD_GRADE_JSON=str(score))
+    report = json.loads(score.read_text())
+    tasks = report["tasks"]
+    assert all(tasks[t]["earned"] == tasks[t]["points"] for t in ("force_hessian", "coloring", "vbd_sweep")), tasks
+    assert tasks["chebyshev"]["earned"] == 0
+    chebyshev = [t for t in report["tests"].values() if t["task"] == "chebyshev"]
+    assert chebyshev and all(t["reason"].startswith("TODO: chebyshev: ") for t in chebyshev), chebyshev
+
+
 def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     out = tmp_path / "hw"
     out.mkdir()
