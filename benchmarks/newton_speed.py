@@ -200,7 +200,7 @@ def main(argv=None):
     init_taichi(args.threads)
     direct = [name for name in solvers() if name.startswith("Newton (")]
     every = list(solvers())
-    curve_names = ["Newton (qdldl)", "Newton (superlu)"] + [n for n in every if n.startswith("Newton-PCG")]
+    curve_names = ["Newton (cholmod)", "Newton (superlu)"] + [n for n in every if n.startswith("Newton-PCG")]
     if args.quick:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (10, 2, 2)), ((1.0, 0.1, 0.1), (20, 2, 2))
         curve_bars, states, repeats, budget = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"], 1, 5.0

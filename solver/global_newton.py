@@ -5,13 +5,15 @@ Same iteration, line search and convergence test as the numpy oracle `solver.new
 and the projected Hessian come from the kernels in `solver.hessian`, into a CSR pattern built once
 per mesh and free mask, and the linear system is solved by a sparse factorisation of that pattern:
 
+- `LinearSolver.CHOLMOD`: CHOLMOD's supernodal Cholesky through `cvxopt` (pip package, GPL-3, its
+  own BLAS), with the fill-reducing ordering and symbolic analysis once per pattern; each iteration only
+  refactorises the numbers. Fastest measured at every size here (benchmarks/newton_speed.py).
 - `LinearSolver.QDLDL`: LDL^T (pip package `qdldl`) with AMD ordering and symbolic analysis once per
-  pattern; each iteration only refactorises the numbers. Fastest measured below ~10^4 unknowns.
+  pattern; each iteration only refactorises the numbers. Not supernodal: slow above ~10^4 unknowns.
 - `LinearSolver.CHOLESPY`: CHOLMOD's Cholesky through `cholespy`, analysed with every factorisation.
 - `LinearSolver.SUPERLU`: scipy's SuperLU with the MMD ordering of H^T + H, always available; the
-  fallback when an optional package is missing (one warning per process). Fastest measured on the
-  30,720-tet bar (less fill than qdldl's AMD; COLAMD was 3x slower there).
-- `LinearSolver.AUTO` (default): QDLDL up to 10,000 unknowns, SUPERLU above.
+  fallback when an optional package is missing (one warning per process).
+- `LinearSolver.AUTO` (default): CHOLMOD; without cvxopt, QDLDL up to 10,000 unknowns and SUPERLU above.
 
 Build the solver once per mesh (`GlobalNewton(tets, free)`, or the cached `global_newton(...)`), then
 call `.solve(problem, x0)` for every step. `fast_newton_solve(problem, x0)` is the drop-in for
@@ -26,6 +28,7 @@ from enum import Enum
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from .backend import ensure_taichi
 from .errors import ConfigError, enum_value
@@ -46,6 +49,7 @@ class LinearSolver(Enum):
     """How the Newton system H d = -g is solved (see the module docstring)."""
 
     AUTO = "auto"
+    CHOLMOD = "cholmod"
     QDLDL = "qdldl"
     CHOLESPY = "cholespy"
     SUPERLU = "superlu"
@@ -62,48 +66,112 @@ def as_linear_solver(value) -> LinearSolver:
 class DirectSolver:
     """Factorise and solve the pattern's current matrix; the symbolic work is done once."""
 
+    _MODULES = {LinearSolver.CHOLMOD: "cvxopt", LinearSolver.QDLDL: "qdldl", LinearSolver.CHOLESPY: "cholespy"}
+
     def __init__(self, pattern: HessianPattern, kind: LinearSolver):
         self.pattern = pattern
         if kind is LinearSolver.AUTO:
-            kind = LinearSolver.QDLDL if pattern.n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
+            kind = self._auto(pattern.n_dofs)
         self.kind = self._available(kind)
-        rows = np.repeat(np.arange(pattern.n_dofs, dtype=np.int32), np.diff(pattern.indptr))
-        if self.kind is LinearSolver.QDLDL:
-            # The upper triangle in CSC is the lower triangle in CSR (H is symmetric).
-            self._lower = np.flatnonzero(pattern.indices <= rows)
-            self._upper_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self._lower],
-                                                                             minlength=pattern.n_dofs))])
-            self._upper_indices = pattern.indices[self._lower]
-            self._qdldl = None
-        elif self.kind is LinearSolver.CHOLESPY:
-            self._rows = rows
+        self._factor = None
+        self.factorised = False     # whether back_solve can use a factorisation of the last matrix
+
+    @classmethod
+    def _auto(cls, n_dofs):
+        if cls._importable("cvxopt"):
+            return LinearSolver.CHOLMOD
+        fallback = LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
+        warn_once("missing-cvxopt", "the sparse Cholesky solver 'cvxopt' is not installed (pip install -r "
+                  f"requirements.txt); using the slower {fallback.value!r} instead")
+        return fallback
 
     @staticmethod
-    def _available(kind):
-        module = {LinearSolver.QDLDL: "qdldl", LinearSolver.CHOLESPY: "cholespy"}.get(kind)
-        if module is None:
-            return kind
+    def _importable(module):
         try:
             __import__(module)
         except ImportError:
-            warn_once(f"missing-{module}", f"the optional sparse solver {module!r} is not installed "
-                      f"(pip install {module}); using scipy's SuperLU instead")
-            return LinearSolver.SUPERLU
-        return kind
+            return False
+        return True
+
+    @classmethod
+    def _available(cls, kind):
+        module = cls._MODULES.get(kind)
+        if module is None or cls._importable(module):
+            return kind
+        warn_once(f"missing-{module}", f"the optional sparse solver {module!r} is not installed "
+                  f"(pip install {module}); using scipy's SuperLU instead")
+        return LinearSolver.SUPERLU
+
+    def _numeric(self):
+        from cvxopt import cholmod
+
+        cholmod.numeric(self._matrix, self._factor)
+        self.factorised = True
+
+    def _cholmod_factor(self):
+        """CHOLMOD's factor of the current matrix with the better of two fill-reducing orderings:
+        CHOLMOD's own AMD and reverse Cuthill-McKee of the vertex graph (a band ordering, which
+        measured up to 25 % faster on long bars). Better means fewer flops, sum_j |L_j|^2 over the
+        columns of L, so the choice is deterministic; it is made once per pattern."""
+        from cvxopt import cholmod, matrix, spmatrix
+
+        p = self.pattern
+        columns = np.repeat(np.arange(p.n_dofs), np.diff(p.upper_indptr))
+        self._matrix = spmatrix(matrix(p.upper), matrix(p.upper_indices.astype(np.int64)), matrix(columns),
+                                (p.n_dofs, p.n_dofs))
+        vertices = reverse_cuthill_mckee(p.vertex_graph, symmetric_mode=True).astype(np.int64)
+        band = matrix((3 * vertices[:, None] + np.arange(3)).ravel())
+
+        def analyse(ordering):
+            if ordering is None:
+                return cholmod.symbolic(self._matrix, uplo="U")
+            return cholmod.symbolic(self._matrix, uplo="U", p=ordering)
+
+        def flops(ordering):
+            trial = analyse(ordering)
+            cholmod.numeric(self._matrix, trial)
+            return float(np.sum(np.diff(np.asarray(cholmod.getfactor(trial).CCS[0]).ravel()) ** 2.0))
+
+        # getfactor turns a factor simplicial (slow to refactorise), so the chosen one is analysed anew.
+        self._factor = analyse(band if flops(band) < flops(None) else None)
+        self._numeric()
+        return self._factor
+
+    def back_solve(self, rhs: np.ndarray) -> np.ndarray:
+        """d (3F,) with H d = rhs for the last factorised H (CHOLMOD only)."""
+        from cvxopt import cholmod, matrix
+
+        out = matrix(rhs)
+        cholmod.solve(self._factor, out)
+        return np.array(out).ravel()
+
+    def _upper(self):
+        """The current upper triangle as a scipy CSC matrix."""
+        p = self.pattern
+        return sp.csc_matrix((p.upper, p.upper_indices, p.upper_indptr), shape=(p.n_dofs, p.n_dofs))
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """d (3F,) with H d = rhs for the pattern's current values H."""
+        """d (3F,) with H d = rhs for the pattern's current values H (and `pattern.upper`).
+        Raises ArithmeticError or RuntimeError when the factorisation finds H not positive definite."""
         p = self.pattern
+        self.factorised = False
+        if self.kind is LinearSolver.CHOLMOD:
+            from cvxopt import matrix
+
+            if self._factor is None:
+                self._factor = self._cholmod_factor()
+            else:
+                self._matrix.V = matrix(p.upper)
+                self._numeric()
+            return self.back_solve(rhs)
         if self.kind is LinearSolver.QDLDL:
             import qdldl
 
-            upper = sp.csc_matrix((p.data[self._lower], self._upper_indices, self._upper_indptr),
-                                  shape=(p.n_dofs, p.n_dofs))
-            if self._qdldl is None:
-                self._qdldl = qdldl.Solver(upper, upper=True)
+            if self._factor is None:
+                self._factor = qdldl.Solver(self._upper(), upper=True)
             else:
-                self._qdldl.update(upper, upper=True)
-            return self._qdldl.solve(rhs)
+                self._factor.update(self._upper(), upper=True)
+            return self._factor.solve(rhs)
         if self.kind is LinearSolver.CHOLESPY:
             from cholespy import CholeskySolverD, MatrixType
 
@@ -141,22 +209,26 @@ class GlobalNewton:
             raise ConfigError("this GlobalNewton was built for another mesh or free mask; "
                               "use solver.global_newton.global_newton(problem.tets, problem.free) for this problem")
 
-    def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray) -> np.ndarray:
-        """d (N, 3) solving H d = -g on the free vertices (0 elsewhere); falls back to SuperLU, then
-        to a mass-scaled gradient step, with a warning, when H is not positive definite."""
+    def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray, project: bool = True) -> np.ndarray:
+        """d (N, 3) solving H d = -g on the free vertices (0 elsewhere). project=False tries the exact,
+        unprojected Hessian first and quietly takes the projected one where the exact one is not
+        positive definite; the projected one falls back to SuperLU, then to a mass-scaled gradient
+        step, with a warning, when it gives no descent direction."""
         p = self.pattern
-        kernels.hessian(x)
+        kernels.hessian(x, project, full=self.direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY))
         rhs = -g[p.free].ravel()
         d = np.zeros_like(x)
         try:
             d[p.free] = self.direct.solve(rhs).reshape(-1, 3)
-        except RuntimeError:            # qdldl: "not quasi-definite"
+        except (ArithmeticError, RuntimeError):     # cholmod: not positive definite; qdldl: not quasi-definite
             d[:] = np.nan
         if np.isfinite(d).all() and np.vdot(g, d) < 0:
             return d
+        if not project:
+            return self.newton_direction(kernels, x, g, project=True)
         warnings.warn("the projected Hessian is not positive definite (no descent direction); "
                       "retrying with SuperLU", stacklevel=3)
-        d[p.free] = superlu_solve(p.matrix(), rhs).reshape(-1, 3)
+        d[p.free] = superlu_solve(kernels.hessian(x), rhs).reshape(-1, 3)
         if np.isfinite(d).all() and np.vdot(g, d) < 0:
             return d
         warnings.warn("SuperLU gave no descent direction either; taking a mass-scaled gradient step",
@@ -168,28 +240,69 @@ class GlobalNewton:
     def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
               keep_iterates: bool = False, time_budget: float = None) -> NewtonResult:
         """Minimise G from x0 (N, 3); same result, convergence test and warnings as `newton_solve`.
-        time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds."""
+        time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds.
+
+        Eigenvalue filtering (after Chen et al. 2024, "Trust-region eigenvalue filtering for projected
+        Newton"): the projection that keeps far-away steps safe also slows Newton to linear convergence
+        near x*, where the exact Hessian is positive definite. So the first iteration, and any after a
+        step whose quadratic model mispredicted the decrease of G, use the projected Hessian; the
+        others use the exact one (if it is positive definite), which converges quadratically."""
         self.check(problem)
         kernels = StepKernels(self.pattern, problem)
         return newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates,
-                                 lambda x, g, it: self.newton_direction(kernels, x, g), time_budget)
+                                 lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted),
+                                 time_budget, self.chord_direction)
+
+    def chord_direction(self, g: np.ndarray):
+        """d (N, 3) solving H_last d = -g with the last factorised Hessian (a back substitution, no new
+        Hessian), or None when there is none."""
+        if not self.direct.factorised:
+            return None
+        p = self.pattern
+        d = np.zeros_like(g)
+        d[p.free] = self.direct.back_solve(-g[p.free].ravel()).reshape(-1, 3)
+        return d
 
 
-def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction, time_budget=None):
+MODEL_AGREEMENT = 0.25    # |actual / predicted decrease - 1| below which the quadratic model is trusted
+CHORD_ATTEMPT = 0.1       # a chord step is tried once the last step is this fraction of the one before
+CHORD_CONTRACTION = 0.01  # ... and taken when it is at most this fraction of the last step
+
+
+def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction, time_budget=None,
+                      chord=None):
     """The loop of `newton_solve` with G and dG/dx from `kernels` and the step from
-    direction(x, g, iteration) -> d (N, 3). Shared by the direct and the PCG Newton."""
+    direction(x, g, iteration, trusted) -> d (N, 3), where trusted is False after a step that was not a
+    full Newton step or whose quadratic model g.d / 2 mispredicted the decrease of G by more than
+    MODEL_AGREEMENT (and the decrease was above G's round-off); True at the first iteration and
+    otherwise. Shared by the direct and the PCG Newton.
+
+    chord(g) -> d or None: the step with the last factorised Hessian, a back substitution (Newton with
+    a lagged Hessian). Once the steps shrink fast (the last trusted step at most CHORD_ATTEMPT times the
+    one before), the chord step is tried first and taken if it is at most CHORD_CONTRACTION times the
+    last step: the lagged Hessian is then as good as a new one, and the factorisation is saved (on the
+    bar of benchmarks/newton_speed.py the last two of four iterations are chord steps). Otherwise a
+    full iteration follows.
+    """
     free = problem.free
     x = np.ascontiguousarray(np.where(free[:, None], x0, problem.constrained_positions), dtype=np.float64)
     size = float(np.ptp(x, axis=0).max()) or 1.0
     force_scale = float(np.max(problem.masses) / problem.h ** 2 * size)
     start = time.perf_counter()
-    G = kernels.energy(x)
-    g = kernels.gradient(x)
+    g, g_new = np.empty_like(x), np.empty_like(x)
+    G = kernels.energy_gradient(x, g)
     result = NewtonResult(x, 0, False)
     result.history.append(NewtonRecord(0, G, float(np.abs(g).max()), 0.0))
     x_new = np.empty_like(x)
+    trusted, last_step, step_before = True, np.inf, np.inf
     for it in range(1, max_iterations + 1):
-        d = direction(x, g, it)
+        d = None
+        if chord is not None and trusted and np.isfinite(step_before) and last_step <= CHORD_ATTEMPT * step_before:
+            d = chord(g)
+            if d is not None and not (np.abs(d).max() <= CHORD_CONTRACTION * last_step and np.vdot(g, d) < 0):
+                d = None
+        if d is None:
+            d = direction(x, g, it, trusted)
         if not np.isfinite(d).all():
             warnings.warn(f"Newton direction is not finite at iteration {it}; stopping at the last iterate",
                           stacklevel=3)
@@ -199,7 +312,7 @@ def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iter
         while alpha >= 1e-10:
             np.multiply(d, alpha, out=x_new)
             x_new += x
-            G_new = kernels.energy(x_new)
+            G_new = kernels.energy_gradient(x_new, g_new)
             if np.isfinite(G_new) and G_new <= G + 1e-4 * alpha * slope + 1e-15 * abs(G):
                 break
             alpha *= 0.5
@@ -208,14 +321,18 @@ def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iter
                 warnings.warn(f"the line search could not decrease G at iteration {it} (max |dG/dx| = "
                               f"{np.abs(g).max():.2e} N); stopping at the last iterate", stacklevel=3)
             break
+        predicted = 0.5 * slope
+        trusted = alpha == 1.0 and (abs(G_new - G - predicted) <= MODEL_AGREEMENT * abs(predicted)
+                                    or abs(predicted) <= 1e-12 * abs(G))
+        last_step, step_before = alpha * float(np.abs(d).max()), last_step
         x, x_new = x_new, x
+        g, g_new = g_new, g
         G = G_new
-        g = kernels.gradient(x)
         result.history.append(NewtonRecord(it, G, float(np.abs(g).max()), time.perf_counter() - start))
         if keep_iterates:
             result.iterates.append(x.copy())
         result.iterations = it
-        if alpha * np.abs(d).max() <= tolerance * size or np.abs(g).max() <= 1e-13 * force_scale:
+        if last_step <= tolerance * size or np.abs(g).max() <= 1e-13 * force_scale:
             result.converged = True
             break
         if time_budget is not None and result.history[-1].seconds > time_budget:

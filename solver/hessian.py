@@ -19,8 +19,13 @@ the remaining three eigenvectors U diag(e) V^T come from the 3x3 "scaling" block
 mu I + lam c c^T + lam (J - alpha) K, with c = (s1 s2, s0 s2, s0 s1) and K_ij = s_k off the diagonal.
 The projected A is A plus (-lambda) q q^T for each negative eigenpair (lambda, q).
 
-The sparsity pattern over the free vertices (`HessianPattern`) is computed once per mesh and free
-mask; every Newton iteration writes into the same CSR arrays.
+Assembly without the 9x9 A: block (k, l) of vol B^T A B is vol sum_bd A[(a, b), (c, d)] m_kb m_ld, which
+for the three terms of A and the rank-one corrections of the projection reduces to 3-vectors per
+vertex (`_tet_blocks`), so an unprojected block costs a few dozen flops. The sparsity pattern over
+the free vertices (`HessianPattern`) is computed once per mesh and free mask with a slot per (tet,
+vertex pair): each tet writes its blocks to their slots, and each 3x3 block of the global matrix
+sums its slots, read contiguously, without atomics (`hessian_kernel`). The Cholesky solvers read only
+the upper triangle (`pattern.upper`, half the work); the full CSR arrays are filled on request.
 """
 
 import math
@@ -56,33 +61,32 @@ def _deformation_gradient(x: ti.template(), tets: ti.template(), grad_rows: ti.t
 
 
 @ti.func
+def _jacobi_rotation(A, V, p: ti.template(), q: ti.template()):
+    """(G^T A G, V G) for the rotation G in the (p, q) plane that zeroes A[p, q]."""
+    G = ti.Matrix.identity(ti.f64, 3)
+    apq = A[p, q]
+    if apq != 0.0:
+        theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+        t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
+        if theta < 0.0:
+            t = -t
+        c = 1.0 / ti.sqrt(t * t + 1.0)
+        G[p, p], G[q, q], G[p, q], G[q, p] = c, c, t * c, -t * c
+    return G.transpose() @ A @ G, V @ G
+
+
+@ti.func
 def _sym_eig3(A):
     """Eigenvalues (3-vector) and eigenvectors (columns) of a symmetric 3x3 matrix by cyclic Jacobi
-    rotations, until the off-diagonal part is at round-off (at most 10 sweeps)."""
+    sweeps, until the off-diagonal part is at round-off (at most 10 sweeps; about 4 are needed)."""
     V = ti.Matrix.identity(ti.f64, 3)
     tiny = 1e-30 * (A[0, 0] ** 2 + A[1, 1] ** 2 + A[2, 2] ** 2)
-    for sweep in range(30):
+    for _ in range(10):
         if A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2 <= tiny:
             break
-        pair = sweep % 3
-        p = 0 if pair < 2 else 1
-        q = 1 if pair == 0 else 2
-        apq = A[p, q]
-        if ti.abs(apq) > 1e-300:
-            theta = (A[q, q] - A[p, p]) / (2.0 * apq)
-            t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
-            if theta < 0.0:
-                t = -t
-            c = 1.0 / ti.sqrt(t * t + 1.0)
-            s = t * c
-            for r in range(3):         # A G and V G with the rotation G in the (p, q) plane
-                arp, arq = A[r, p], A[r, q]
-                A[r, p], A[r, q] = c * arp - s * arq, s * arp + c * arq
-                vrp, vrq = V[r, p], V[r, q]
-                V[r, p], V[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
-            for r in range(3):         # G^T (A G)
-                apr, aqr = A[p, r], A[q, r]
-                A[p, r], A[q, r] = c * apr - s * aqr, s * apr + c * aqr
+        A, V = _jacobi_rotation(A, V, 0, 1)
+        A, V = _jacobi_rotation(A, V, 0, 2)
+        A, V = _jacobi_rotation(A, V, 1, 2)
     return ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), V
 
 
@@ -102,14 +106,13 @@ def _svd3(F):
     Jacobi eigendecomposition of F^T F: V and s0, s1 from it, U's columns F v_i / s_i and u0 x u1.
     (Taichi's own ti.svd reconstructs F only to ~1e-10 in float64 and is slow to compile.)"""
     evals, V = _sym_eig3(F.transpose() @ F)
-    for _ in range(2):                           # sort the eigenpairs by decreasing eigenvalue
-        for a in range(2):
-            if evals[a] < evals[a + 1]:
-                evals[a], evals[a + 1] = evals[a + 1], evals[a]
-                for r in range(3):
-                    V[r, a], V[r, a + 1] = V[r, a + 1], V[r, a]
+    for a in ti.static((0, 1, 0)):                # sort the eigenpairs by decreasing eigenvalue
+        if evals[a] < evals[a + 1]:
+            evals[a], evals[a + 1] = evals[a + 1], evals[a]
+            for r in ti.static(range(3)):
+                V[r, a], V[r, a + 1] = V[r, a + 1], V[r, a]
     if V.determinant() < 0.0:
-        for r in range(3):
+        for r in ti.static(range(3)):
             V[r, 2] = -V[r, 2]
     v0 = ti.Vector([V[0, 0], V[1, 0], V[2, 0]])
     v1 = ti.Vector([V[0, 1], V[1, 1], V[2, 1]])
@@ -137,6 +140,18 @@ def _levi_civita(i, j, k):
 
 
 @ti.func
+def _scaling_block(s, mu, lam, scale):
+    """The 3x3 block mu I + lam c c^T + lam (J - alpha) K of dP/dF on the scalings U diag(e) V^T, with
+    c = (s1 s2, s0 s2, s0 s1), K_ij = s_k off the diagonal, scale = lam (J - alpha)."""
+    cof_s = ti.Vector([s[1] * s[2], s[0] * s[2], s[0] * s[1]])
+    B = mu * ti.Matrix.identity(ti.f64, 3) + lam * cof_s.outer_product(cof_s)
+    for i, j, k in ti.static(_PAIRS):
+        B[i, j] += scale * s[k]
+        B[j, i] += scale * s[k]
+    return B
+
+
+@ti.func
 def _eigensystem(F, mu, lam, t, eigenvalues: ti.template(), eigenvectors: ti.template()):
     """The 9 eigenpairs of tet t's dP/dF: eigenvalues[t, q] and eigenvectors[t, q] (3x3, unit
     Frobenius norm), q < 6 twist/flip of the pairs, q >= 6 scaling."""
@@ -151,12 +166,7 @@ def _eigensystem(F, mu, lam, t, eigenvalues: ti.template(), eigenvectors: ti.tem
         eigenvalues[t, q] = mu + sign * scale * s[k]
         for a, b in ti.ndrange(3, 3):
             eigenvectors[t, q, a, b] = _SQRT_HALF * (U[a, i] * V[b, j] - sign * U[a, j] * V[b, i])
-    cof_s = ti.Vector([s[1] * s[2], s[0] * s[2], s[0] * s[1]])
-    B = mu * ti.Matrix.identity(ti.f64, 3) + lam * cof_s.outer_product(cof_s)
-    for i, j, k in ti.static(_PAIRS):
-        B[i, j] += scale * s[k]
-        B[j, i] += scale * s[k]
-    evals, evecs = _sym_eig3(B)
+    evals, evecs = _sym_eig3(_scaling_block(s, mu, lam, scale))
     for n in range(3):
         eigenvalues[t, 6 + n] = evals[n]
         for a, b in ti.ndrange(3, 3):
@@ -215,94 +225,189 @@ def _ground_depth(z, free_flag, has_ground, ground_height):
 
 
 @ti.kernel
-def energy_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types.ndarray(),
-                  grad_rows: ti.types.ndarray(), volumes: ti.types.ndarray(), masses: ti.types.ndarray(),
-                  free: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64, has_ground: ti.i32,
-                  ground_height: ti.f64, ground_stiffness: ti.f64) -> ti.f64:
-    """G(x) in J. Arrays as in `StepProblem`; free is (N,) int32."""
+def energy_gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types.ndarray(),
+                           grad_rows: ti.types.ndarray(), volumes: ti.types.ndarray(), masses: ti.types.ndarray(),
+                           free: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64, has_ground: ti.i32,
+                           ground_height: ti.f64, ground_stiffness: ti.f64, incidence_start: ti.types.ndarray(),
+                           incidence: ti.types.ndarray(), tet_forces: ti.types.ndarray(), g: ti.types.ndarray()) -> ti.f64:
+    """G(x) in J, and g (N, 3) = dG/dx, zero at constrained vertices. Arrays as in `StepProblem`;
+    free is (N,) int32. Each tet writes vol P m_k for its 4 vertices to tet_forces (M, 4, 3), and each
+    vertex i sums its entries incidence[incidence_start[i]:incidence_start[i + 1]] (4 t + k): no atomics."""
     total = 0.0
     for t in range(tets.shape[0]):
-        total += volumes[t] * psi(_deformation_gradient(x, tets, grad_rows, t), mu, lam)
+        F = _deformation_gradient(x, tets, grad_rows, t)
+        total += volumes[t] * psi(F, mu, lam)
+        P = dpsi_dF(F, mu, lam)
+        for k in ti.static(range(4)):
+            f = volumes[t] * (P @ _grad_row(grad_rows, t, k))
+            for c in ti.static(range(3)):
+                tet_forces[t, k, c] = f[c]
     for i in range(x.shape[0]):
+        gi = ti.Vector.zero(ti.f64, 3)
         if free[i] != 0:
+            for n in range(incidence_start[i], incidence_start[i + 1]):
+                code = incidence[n]
+                for c in ti.static(range(3)):
+                    gi[c] += tet_forces[code // 4, code % 4, c]
             d = _vec3(x, i) - _vec3(y, i)
             depth = _ground_depth(x[i, 2], free[i], has_ground, ground_height)
             total += 0.5 * masses[i] / (h * h) * d.dot(d) + 0.5 * ground_stiffness * depth * depth
+            gi += masses[i] / (h * h) * d
+            gi[2] -= ground_stiffness * depth
+        for c in ti.static(range(3)):
+            g[i, c] = gi[c]
     return total
 
 
-@ti.kernel
-def gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: ti.types.ndarray(),
-                    grad_rows: ti.types.ndarray(), volumes: ti.types.ndarray(), masses: ti.types.ndarray(),
-                    free: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64, has_ground: ti.i32,
-                    ground_height: ti.f64, ground_stiffness: ti.f64, g: ti.types.ndarray()):
-    """g (N, 3) = dG/dx, zero at constrained vertices."""
-    for i in range(x.shape[0]):
-        for c in ti.static(range(3)):
-            g[i, c] = 0.0
-    for t in range(tets.shape[0]):
-        F = _deformation_gradient(x, tets, grad_rows, t)
-        P = dpsi_dF(F, mu, lam)
-        for k in ti.static(range(4)):
-            v = tets[t, k]
-            if free[v] != 0:
-                f = volumes[t] * (P @ _grad_row(grad_rows, t, k))
-                for c in ti.static(range(3)):
-                    g[v, c] += f[c]
-    for i in range(x.shape[0]):
-        if free[i] != 0:
-            for c in ti.static(range(3)):
-                g[i, c] += masses[i] / (h * h) * (x[i, c] - y[i, c])
-            g[i, 2] -= ground_stiffness * _ground_depth(x[i, 2], free[i], has_ground, ground_height)
+_BLOCK_PAIRS = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
+_BLOCK_INDEX = tuple(tuple(_BLOCK_PAIRS.index((k, l)) if k <= l else -1 for l in range(4)) for k in range(4))
+
+
+@ti.func
+def _subtract_outer(blocks: ti.template(), t, weight, R):
+    """blocks[t, p] -= weight R_k R_l^T for every vertex pair p = (k, l), k <= l; R (4x3) has one
+    row per tet vertex."""
+    for p in ti.static(range(10)):
+        k, l = _BLOCK_PAIRS[p]
+        for a, c in ti.static(ti.ndrange(3, 3)):
+            blocks[t, p, a, c] -= weight * R[k, a] * R[l, c]
+
+
+@ti.func
+def _tet_blocks(x: ti.template(), tets: ti.template(), grad_rows: ti.template(), volumes: ti.template(), mu, lam,
+                project, t, blocks: ti.template()):
+    """blocks (M, 10, 3, 3): the 3x3 blocks (k, l), k <= l in `_BLOCK_PAIRS` order, of each tet's
+    projected Hessian vol B^T A B at x (N, 3), without assembling A. With m_k the gradient rows,
+
+        block_kl = vol (mu (m_k . m_l) I + lam (C m_k)(C m_l)^T + lam (J - alpha) eps_ace (F (m_k x m_l))_e)
+                   - sum over negative eigenpairs (lambda, Q) of A of vol lambda (Q m_k)(Q m_l)^T,
+
+    because B^T vec(M) = (M m_k)_k for any 3x3 M. Q m_k only needs a_k = V^T m_k (module docstring).
+    Tet t's blocks; project = 0 leaves them unprojected (the exact Hessian) and skips the eigensystem."""
+    F = _deformation_gradient(x, tets, grad_rows, t)
+    vol = volumes[t]
+    alpha = 1.0 + mu / lam
+    scale = lam * (F.determinant() - alpha)
+    m = ti.Matrix.zero(ti.f64, 4, 3)
+    for k, b in ti.static(ti.ndrange(4, 3)):
+        m[k, b] = grad_rows[t, k, b]
+    Cm = m @ cofactor(F).transpose()                      # row k: C m_k = dJ/dx_k
+    for p in ti.static(range(10)):
+        k, l = _BLOCK_PAIRS[p]
+        mk = ti.Vector([m[k, 0], m[k, 1], m[k, 2]])
+        ml = ti.Vector([m[l, 0], m[l, 1], m[l, 2]])
+        w = scale * (F @ mk.cross(ml))
+        mkml = mu * mk.dot(ml)
+        for a, c in ti.static(ti.ndrange(3, 3)):
+            value = lam * Cm[k, a] * Cm[l, c]
+            if ti.static(a == c):
+                value += mkml
+            else:
+                value += _levi_civita(a, c, 3 - a - c) * w[3 - a - c]
+            blocks[t, p, a, c] = vol * value
+    if project != 0:
+        _subtract_negative_eigenpairs(F, m, vol, mu, lam, scale, t, blocks)
+
+
+@ti.func
+def _subtract_negative_eigenpairs(F, m, vol, mu, lam, scale, t, blocks: ti.template()):
+    """The projection of `_tet_blocks`: blocks[t] -= vol lambda (Q m_k)(Q m_l)^T for each negative
+    eigenpair (lambda, Q) of dP/dF at F; m (4x3): the gradient rows."""
+    U, s, V = _svd3(F)
+    A = m @ V                                             # row k: a_k = V^T m_k
+    for q in range(6):                                    # twist (even q) and flip (odd q) of the pair (i, j)
+        k3 = q // 2
+        i = 1 if k3 == 0 else 0
+        j = 1 if k3 == 2 else 2
+        sign = 1.0 - 2.0 * (q % 2)
+        eigenvalue = mu + sign * scale * s[k3]
+        if eigenvalue < 0.0:
+            R = ti.Matrix.zero(ti.f64, 4, 3)
+            for k, a in ti.static(ti.ndrange(4, 3)):
+                R[k, a] = _SQRT_HALF * (U[a, i] * A[k, j] - sign * U[a, j] * A[k, i])
+            _subtract_outer(blocks, t, vol * eigenvalue, R)
+    B = _scaling_block(s, mu, lam, scale)
+    if B[0, 0] <= 0.0 or B[0, 0] * B[1, 1] - B[0, 1] ** 2 <= 0.0 or B.determinant() <= 0.0:
+        _subtract_negative_scalings(B, U, A, vol, t, blocks)
+
+
+@ti.func
+def _subtract_negative_scalings(B, U, A, vol, t, blocks: ti.template()):
+    """The scaling part of `_subtract_negative_eigenpairs`, for a scaling block B that is not positive
+    definite (Sylvester's criterion): Q = U diag(e) V^T for each eigenpair (lambda < 0, e) of B."""
+    evals, evecs = _sym_eig3(B)
+    for n in range(3):
+        if evals[n] < 0.0:
+            e = ti.Vector([evecs[0, n], evecs[1, n], evecs[2, n]])
+            R = ti.Matrix.zero(ti.f64, 4, 3)
+            for k in ti.static(range(4)):
+                Uk = U @ (e * ti.Vector([A[k, 0], A[k, 1], A[k, 2]]))
+                for a in ti.static(range(3)):
+                    R[k, a] = Uk[a]
+            _subtract_outer(blocks, t, vol * evals[n], R)
 
 
 @ti.kernel
-def assemble_kernel(A9: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: ti.types.ndarray(),
-                    volumes: ti.types.ndarray(), block_start: ti.types.ndarray(), row_length: ti.types.ndarray(),
-                    x: ti.types.ndarray(), masses: ti.types.ndarray(), free_index: ti.types.ndarray(),
-                    diag_start: ti.types.ndarray(), h: ti.f64, has_ground: ti.i32, ground_height: ti.f64,
-                    ground_stiffness: ti.f64, data: ti.types.ndarray()):
-    """CSR values `data` of the free-dof Hessian: tet blocks, then masses/h^2 and contact on the
-    diagonal. block_start (M, 4, 4): CSR index of entry (3 f_k, 3 f_l), -1 when either vertex is
-    constrained; row_length (M, 4): entries per scalar row of vertex k; diag_start (F, 3): CSR index
-    of each diagonal entry."""
-    for n in range(data.shape[0]):
-        data[n] = 0.0
+def hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: ti.types.ndarray(),
+                   volumes: ti.types.ndarray(), masses: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64,
+                   has_ground: ti.i32, ground_height: ti.f64, ground_stiffness: ti.f64, project: ti.i32,
+                   full: ti.i32, blocks: ti.types.ndarray(), slot_of: ti.types.ndarray(), slots: ti.types.ndarray(),
+                   contribution_start: ti.types.ndarray(), block_entry: ti.types.ndarray(),
+                   block_row_length: ti.types.ndarray(), block_vertex: ti.types.ndarray(),
+                   lower_blocks: ti.types.ndarray(), data: ti.types.ndarray(), upper_entry: ti.types.ndarray(),
+                   upper: ti.types.ndarray()):
+    """The free-dof Hessian at x (N, 3): the tet blocks of `_tet_blocks`, then one 3x3 block of a
+    vertex pair per thread and no atomics: the sum of its tet blocks, masses/h^2 and contact on the
+    diagonal blocks. full = 1: every block into the CSR values `data`, then `upper` = data[upper_entry];
+    full = 0: only the blocks on and below the diagonal (`lower_blocks`), straight into `upper`, the upper
+    triangle in CSC order that the Cholesky solvers read (half the work; `data` is left as it was).
+    Each tet copies its block of every ordered vertex pair (k, l) to slots[slot_of[t, 4 k + l]] (transposed
+    for k > l; -1: a constrained vertex; -2 - slot: a block above the diagonal, only copied when full),
+    so that slots[contribution_start[b]:contribution_start[b + 1]]
+    are the tet blocks of block b, read contiguously; block_entry (B,): index of the block's entry
+    (0, 0) in `data`; block_row_length (B,):
+    entries per scalar row; block_vertex (B,): the vertex of a diagonal block, -1 off the diagonal;
+    lower_blocks (L, 3): block index, index of its entry (0, 0) in `upper`, length of its first row there."""
     for t in range(tets.shape[0]):
-        A = ti.Matrix.zero(ti.f64, 9, 9)
-        for r, c in ti.ndrange(9, 9):
-            A[r, c] = volumes[t] * A9[t, r, c]
-        m = ti.Matrix.zero(ti.f64, 4, 3)
-        for k, b in ti.static(ti.ndrange(4, 3)):
-            m[k, b] = grad_rows[t, k, b]
-        for l in range(4):
-            W = ti.Matrix.zero(ti.f64, 9, 3)        # W[(c, b), d] = sum_e A[(c, b), (d, e)] m_le
-            for r, d in ti.ndrange(9, 3):
-                W[r, d] = A[r, 3 * d] * m[l, 0] + A[r, 3 * d + 1] * m[l, 1] + A[r, 3 * d + 2] * m[l, 2]
-            for k in range(l + 1):                 # block (k, l) of vol B^T A B, and its transpose (l, k)
-                start = block_start[t, k, l]
-                if start >= 0:
-                    mirror = block_start[t, l, k]
-                    for c, d in ti.ndrange(3, 3):
-                        value = W[3 * c, d] * m[k, 0] + W[3 * c + 1, d] * m[k, 1] + W[3 * c + 2, d] * m[k, 2]
-                        data[start + c * row_length[t, k] + d] += value
-                        if k != l:
-                            data[mirror + d * row_length[t, l] + c] += value
-    for i in range(masses.shape[0]):
-        f = free_index[i]
-        if f >= 0:
+        _tet_blocks(x, tets, grad_rows, volumes, mu, lam, project, t, blocks)
+        for k, l in ti.static(ti.ndrange(4, 4)):
+            n = slot_of[t, 4 * k + l]
+            if n <= -2 and full != 0:
+                n = -2 - n
+            if n >= 0:
+                p = _BLOCK_INDEX[min(k, l)][max(k, l)]
+                for a, c in ti.static(ti.ndrange(3, 3)):
+                    slots[n, a, c] = blocks[t, p, a, c] if ti.static(k <= l) else blocks[t, p, c, a]
+    for j in range(block_entry.shape[0] if full != 0 else lower_blocks.shape[0]):
+        b = j if full != 0 else lower_blocks[j, 0]
+        H = ti.Matrix.zero(ti.f64, 3, 3)
+        for n in range(contribution_start[b], contribution_start[b + 1]):
+            for a, c in ti.static(ti.ndrange(3, 3)):
+                H[a, c] += slots[n, a, c]
+        i = block_vertex[b]
+        if i >= 0:
             for c in ti.static(range(3)):
-                data[diag_start[f, c]] += masses[i] / (h * h)
+                H[c, c] += masses[i] / (h * h)
             if has_ground != 0 and x[i, 2] < ground_height:
-                data[diag_start[f, 2]] += ground_stiffness
+                H[2, 2] += ground_stiffness
+        if full != 0:
+            for a, c in ti.static(ti.ndrange(3, 3)):
+                data[block_entry[b] + a * block_row_length[b] + c] = H[a, c]
+        else:                       # row a of the block starts at entry + a L0 + a (a - 1) / 2 in `upper`
+            for a, c in ti.static(ti.ndrange(3, 3)):
+                if ti.static(c <= a) or i < 0:
+                    upper[lower_blocks[j, 1] + a * lower_blocks[j, 2] + a * (a - 1) // 2 + c] = H[a, c]
+    for n in range(upper_entry.shape[0] if full != 0 else 0):
+        upper[n] = data[upper_entry[n]]
 
 
 class HessianPattern:
     """The CSR sparsity pattern of G's Hessian over the free degrees of freedom, built once.
 
     tets (M, 4) int; free (N,) bool. Free vertex i has unknowns 3 free_index[i] + (0, 1, 2);
-    free_index is -1 at constrained vertices. indptr (3F + 1,), indices (nnz,) int32: the scalar
-    CSR pattern (columns sorted) of the 3x3 blocks of every pair of free vertices sharing a tet.
+    free_index is -1 at constrained vertices; vertex_graph (F, F) CSR: which free vertices share a tet.
+    indptr (3F + 1,), indices (nnz,) int32: the scalar CSR pattern (columns sorted) of the 3x3 blocks of
+    every pair of free vertices sharing a tet; upper_indptr, upper_indices: its upper triangle in CSC.
     """
 
     def __init__(self, tets: np.ndarray, free: np.ndarray):
@@ -324,39 +429,62 @@ class HessianPattern:
                                   shape=(self.n_free, self.n_free))
         adjacency.sum_duplicates()
         adjacency.sort_indices()
+        self.vertex_graph = adjacency
         vptr = adjacency.indptr.astype(np.int64)
         vcols = adjacency.indices.astype(np.int64)
         n_neighbours = np.diff(vptr)
         keys = np.repeat(np.arange(self.n_free, dtype=np.int64), n_neighbours) * self.n_free + vcols
 
-        def start_of(f, w):
-            """CSR index of scalar entry (3f, 3w) for free vertices f, w (arrays)."""
-            rank = np.searchsorted(keys, f.astype(np.int64) * self.n_free + w) - vptr[f]
-            return 9 * vptr[f] + 3 * rank
+        def block_of(f, w):
+            """Index of the 3x3 block of free vertices (f, w) (arrays) among all blocks, row by row."""
+            return np.searchsorted(keys, f.astype(np.int64) * self.n_free + w)
 
-        block_start = np.full((len(tets), 4, 4), -1, dtype=np.int64)
-        fk = np.broadcast_to(fi[:, :, None], block_start.shape)
-        fl = np.broadcast_to(fi[:, None, :], block_start.shape)
-        both = (fk >= 0) & (fl >= 0)
-        block_start[both] = start_of(fk[both], fl[both])
-        self.block_start = block_start.astype(np.int32)
-        self.row_length = np.where(fi >= 0, 3 * n_neighbours[np.maximum(fi, 0)], 0).astype(np.int32)
-        diag_start = start_of(diag, diag)
-        self.diag_start = (diag_start[:, None] + (3 * n_neighbours[:, None] + 1) * np.arange(3)).astype(np.int32)
-        # Scalar pattern: entry (3f + c, 3w + d) sits at 9 vptr[f] + 3 nb_f c + 3 rank + d.
         self.nnz = int(9 * vptr[-1])
-        if self.nnz >= 2 ** 31:
+        if self.nnz >= 2 ** 31 or 16 * len(tets) >= 2 ** 31:
             raise MemoryError("Hessian pattern too large for 32-bit CSR indices")
         entry_f = np.repeat(np.arange(self.n_free), n_neighbours)
         entry_rank = np.arange(len(vcols)) - vptr[entry_f]
+        # Scalar pattern: entry (3f + c, 3w + d) sits at 9 vptr[f] + 3 nb_f c + 3 rank + d.
+        self.block_entry = (9 * vptr[entry_f] + 3 * entry_rank).astype(np.int32)
+        self.block_row_length = (3 * n_neighbours[entry_f]).astype(np.int32)
+        self.block_vertex = np.where(vcols == entry_f, np.flatnonzero(free)[entry_f], -1).astype(np.int32)
+        k, l = np.divmod(np.arange(16), 4)
+        fk, fl = fi[:, k], fi[:, l]                                       # (M, 16): ordered pairs (k, l)
+        both = (fk >= 0) & (fl >= 0)
+        block = block_of(fk[both], fl[both])
+        order = np.argsort(block, kind="stable")
+        slot = np.empty(len(block), dtype=np.int64)
+        slot[order] = np.arange(len(block))
+        self.slot_of = np.full((len(tets), 16), -1, dtype=np.int32)
+        self.slot_of[both] = np.where(fl[both] <= fk[both], slot, -2 - slot)   # above the diagonal: -2 - slot
+        self.slots = np.zeros((len(block), 3, 3))
+        self.contribution_start = np.concatenate([[0], np.cumsum(np.bincount(block, minlength=len(vcols)))]) \
+            .astype(np.int32)
         c = np.arange(3)[None, :, None]
         d = np.arange(3)[None, None, :]
-        where = (9 * vptr[entry_f])[:, None, None] + 3 * n_neighbours[entry_f][:, None, None] * c \
-            + 3 * entry_rank[:, None, None] + d
+        where = self.block_entry[:, None, None] + self.block_row_length[:, None, None] * c + d
         indices = np.empty(self.nnz, dtype=np.int32)
         indices[where.ravel()] = np.broadcast_to(3 * vcols[:, None, None] + d, where.shape).ravel()
         self.indices = indices
         self.indptr = np.concatenate([[0], np.cumsum(np.repeat(3 * n_neighbours, 3))]).astype(np.int32)
+        # The upper triangle in CSC order is the lower triangle in CSR order (H is symmetric).
+        rows = np.repeat(np.arange(self.n_dofs, dtype=np.int32), np.diff(self.indptr))
+        self.upper_entry = np.flatnonzero(self.indices <= rows).astype(np.int32)
+        self.upper_indices = self.indices[self.upper_entry]
+        self.upper_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[self.upper_entry],
+                                                                       minlength=self.n_dofs))]).astype(np.int32)
+        self.upper = np.zeros(len(self.upper_entry))
+        # Blocks (f, w) with w <= f hold the upper triangle in CSC order: row 3f + a there has the
+        # 3 n_lower(f) entries of f's lower neighbours w < f, then a + 1 of the diagonal block.
+        lower = np.flatnonzero(vcols <= entry_f)
+        n_lower = np.bincount(entry_f[vcols < entry_f], minlength=self.n_free)
+        self.lower_blocks = np.stack([lower, self.upper_indptr[3 * entry_f[lower]] + 3 * entry_rank[lower],
+                                      3 * n_lower[entry_f[lower]] + 1], axis=1).astype(np.int32)
+        self.blocks = np.zeros((len(tets), 10, 3, 3))
+        self.incidence = np.argsort(tets.ravel(), kind="stable").astype(np.int32)       # 4 t + k, by vertex
+        self.incidence_start = np.concatenate([[0], np.cumsum(np.bincount(tets.ravel(), minlength=len(free)))]) \
+            .astype(np.int32)
+        self.tet_forces = np.zeros((len(tets), 4, 3))
         self.data = np.zeros(self.nnz)
         self.A9 = np.zeros((len(tets), 9, 9))
         self.eigenvalues = np.zeros((len(tets), 9))
@@ -390,16 +518,22 @@ class StepKernels:
         self.h, self.mu, self.lam = float(problem.h), float(problem.mu), float(problem.lam)
         self.ground = ground_arguments(problem.ground)
 
+    def energy_gradient(self, x: np.ndarray, g: np.ndarray) -> float:
+        """G(x) in J for x (N, 3) float64 C-contiguous; fills g (N, 3) with dG/dx (zero at constrained
+        vertices). One pass over the tets for both."""
+        p = self.pattern
+        return float(energy_gradient_kernel(x, self.y, self.tets, self.grad_rows, self.volumes, self.masses,
+                                            p.free_int, self.h, self.mu, self.lam, *self.ground, p.incidence_start,
+                                            p.incidence, p.tet_forces, g))
+
     def energy(self, x: np.ndarray) -> float:
-        """G(x) in J for x (N, 3) float64 C-contiguous."""
-        return float(energy_kernel(x, self.y, self.tets, self.grad_rows, self.volumes, self.masses,
-                                   self.pattern.free_int, self.h, self.mu, self.lam, *self.ground))
+        """G(x) in J."""
+        return self.energy_gradient(x, np.empty_like(x))
 
     def gradient(self, x: np.ndarray, out: np.ndarray = None) -> np.ndarray:
         """(N, 3) dG/dx, zero at constrained vertices."""
         out = np.empty_like(x) if out is None else out
-        gradient_kernel(x, self.y, self.tets, self.grad_rows, self.volumes, self.masses, self.pattern.free_int,
-                        self.h, self.mu, self.lam, *self.ground, out)
+        self.energy_gradient(x, out)
         return out
 
     def stress_hessians(self, x: np.ndarray) -> np.ndarray:
@@ -409,10 +543,15 @@ class StepKernels:
         stress_hessian_kernel(x, self.tets, self.grad_rows, self.mu, self.lam, p.eigenvalues, p.eigenvectors, p.A9)
         return self.pattern.A9
 
-    def hessian(self, x: np.ndarray) -> sp.csr_matrix:
-        """(3F, 3F) projected Hessian over the free unknowns at x, in the pattern's CSR arrays."""
+    def hessian(self, x: np.ndarray, project: bool = True, full: bool = True):
+        """(3F, 3F) Hessian over the free unknowns at x, projected per tet unless project=False: its upper
+        triangle in `pattern.upper`, and with full=True the whole matrix in the pattern's CSR arrays,
+        returned as a scipy CSR matrix (full=False returns None)."""
         p = self.pattern
-        self.stress_hessians(x)
-        assemble_kernel(p.A9, self.tets, self.grad_rows, self.volumes, p.block_start, p.row_length, x,
-                        self.masses, p.free_index, p.diag_start, self.h, *self.ground, p.data)
+        hessian_kernel(x, self.tets, self.grad_rows, self.volumes, self.masses, self.h, self.mu, self.lam,
+                       *self.ground, int(project), int(full), p.blocks, p.slot_of, p.slots, p.contribution_start,
+                       p.block_entry, p.block_row_length, p.block_vertex, p.lower_blocks, p.data, p.upper_entry,
+                       p.upper)
+        if not full:
+            return None
         return p.matrix()

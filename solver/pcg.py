@@ -260,7 +260,7 @@ class NewtonPCG:
         state = dict(g0=None, direct=False, direct_iterations=0)
         cg_counts = []
 
-        def direction(x, g, iteration):
+        def direction(x, g, iteration, trusted):
             g_norm = float(np.linalg.norm(g))
             if state["g0"] is None:
                 state["g0"] = g_norm
@@ -269,10 +269,9 @@ class NewtonPCG:
                 state["direct_iterations"] += 1
                 return self.direct.newton_direction(kernels, x, g)
             eta = min(self.forcing, np.sqrt(g_norm / state["g0"])) if state["g0"] > 0 else self.forcing
+            kernels.stress_hessians(x)
             if self.preconditioner is Preconditioner.COLOR_SWEEP:
                 kernels.hessian(x)                      # the sweep reads the assembled off-diagonal blocks
-            else:
-                kernels.stress_hessians(x)
             inverse_diagonal_blocks_kernel(p.A9, p.tets, kernels.grad_rows, kernels.volumes, kernels.masses,
                                            p.free_int, x, kernels.h, *kernels.ground, self.D_inv)
             d, count, relative = self.cg(kernels, x, -g, eta)

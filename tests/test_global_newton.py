@@ -4,6 +4,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 import solver
 from solver.global_newton import DirectSolver, GlobalNewton, LinearSolver, fast_newton_solve, global_newton
@@ -68,7 +69,17 @@ def test_energy_gradient_and_projected_hessian_match_the_oracle(problem):
     assert H.shape == H_ref.shape
     assert abs(H - H_ref).max() <= 1e-9 * abs(H_ref).max()
     # the projection is active here, so this compares the projections and not just the Hessians
-    assert abs(p.hessian(x, project=False)[free][:, free] - H_ref).max() > 1e-3 * abs(H_ref).max()
+    H_exact = p.hessian(x, project=False)[free][:, free]
+    assert abs(H_exact - H_ref).max() > 1e-3 * abs(H_ref).max()
+    assert abs(kernels.hessian(x, project=False) - H_exact).max() <= 1e-9 * abs(H_exact).max()
+    H = kernels.hessian(x)
+    pattern = kernels.pattern
+    upper = sp.csc_matrix((pattern.upper, pattern.upper_indices, pattern.upper_indptr), shape=H.shape)
+    assert abs(upper - sp.triu(H)).max() <= 1e-14 * abs(H).max()     # what the Cholesky solvers factorise
+    from_full = pattern.upper.copy()
+    pattern.upper[:] = 0.0
+    assert kernels.hessian(x, full=False) is None      # only the upper triangle, straight from the blocks
+    np.testing.assert_array_equal(pattern.upper, from_full)
 
 
 def test_projection_of_an_inverted_and_a_degenerate_tet():
@@ -104,14 +115,55 @@ def test_fast_newton_agrees_with_newton_solve(problem):
     step = np.abs(ref.x - x0).max()
     assert step > 1e-4
     assert np.abs(fast.x - ref.x).max() <= 1e-9 * step
-    assert abs(fast.iterations - ref.iterations) <= 1
+    assert fast.iterations <= ref.iterations          # eigenvalue filtering: never slower than projected Newton
     energies = [r.energy for r in fast.history]
     assert all(b <= a + 1e-12 * abs(a) for a, b in zip(energies, energies[1:]))
+
+
+def test_exact_hessian_near_the_solution_converges_in_fewer_iterations_than_projected_newton():
+    """Eigenvalue filtering: where the projection is active at x*, projected Newton (the numpy oracle)
+    converges linearly, the fast Newton quadratically: fewer iterations, the same x*, and the last
+    iteration is a back substitution with the previous factorisation (one factorisation fewer)."""
+    p = _bar_with_ground()
+    x0 = p.y_with_constraints()
+    ref = solver.newton_solve(p, x0, tolerance=1e-12)
+    newton = GlobalNewton(p.tets, p.free)
+    calls = []
+    real_solve = newton.direct.solve
+    newton.direct.solve = lambda rhs: calls.append(1) or real_solve(rhs)
+    fast = newton.solve(p, x0, tolerance=1e-12)
+    assert fast.converged and fast.iterations < ref.iterations
+    assert np.abs(fast.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
+    if newton.direct.kind is LinearSolver.CHOLMOD:
+        assert len(calls) < fast.iterations            # chord steps reuse the last factorisation
+    gradients = [r.max_gradient for r in fast.history]
+    assert gradients[2] < 1e-3 * gradients[1]          # quadratic, not linear, once close
+
+
+def test_an_indefinite_exact_hessian_quietly_takes_the_projected_one():
+    """A cube squashed to a third of its height with a long time step: the exact Hessian of G is not
+    positive definite, so the direction is the projected Newton step, without a warning."""
+    p = _falling_cube()
+    x = p.y_with_constraints().copy()
+    x[:, 2] = 0.001 + 0.3 * (x[:, 2] - x[:, 2].min())
+    x = np.ascontiguousarray(x)
+    newton = GlobalNewton(p.tets, p.free)
+    kernels = StepKernels(newton.pattern, p)
+    assert np.linalg.eigvalsh(kernels.hessian(x, project=False).toarray()).min() < 0
+    g = kernels.gradient(x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        d = newton.newton_direction(kernels, x, g, project=False)
+    projected = kernels.hessian(x).toarray()
+    expected = np.linalg.solve(projected, -g[p.free].ravel())
+    np.testing.assert_allclose(d[p.free].ravel(), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
 
 
 @pytest.mark.parametrize("kind", list(LinearSolver))
 def test_every_linear_solver_gives_the_same_step(kind):
     p = _bar_with_ground()
+    if kind is LinearSolver.CHOLMOD:
+        pytest.importorskip("cvxopt", reason="sparse Cholesky solver cvxopt is not installed")
     if kind is LinearSolver.CHOLESPY:
         pytest.importorskip("cholespy", reason="optional sparse solver cholespy is not installed")
     if kind is LinearSolver.QDLDL:
@@ -144,6 +196,18 @@ def test_missing_optional_solver_falls_back_to_superlu_with_one_warning(monkeypa
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert DirectSolver(pattern, LinearSolver.QDLDL).kind is LinearSolver.SUPERLU
+
+
+def test_auto_without_cvxopt_warns_once_and_uses_qdldl(monkeypatch):
+    p = _bar_with_ground()
+    pattern = HessianPattern(p.tets, p.free)
+    monkeypatch.setitem(sys.modules, "cvxopt", None)
+    monkeypatch.setattr("solver.global_newton._WARNED", set())
+    with pytest.warns(UserWarning, match="'cvxopt' is not installed.*'qdldl'"):
+        assert DirectSolver(pattern, LinearSolver.AUTO).kind is LinearSolver.QDLDL
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert DirectSolver(pattern, LinearSolver.AUTO).kind is LinearSolver.QDLDL
 
 
 def test_unknown_linear_solver_is_a_config_error():
@@ -182,9 +246,9 @@ def test_a_failed_line_search_warns_and_keeps_the_last_iterate(monkeypatch):
     p = _bar_with_ground()
     x0 = p.y_with_constraints()
     start = np.ascontiguousarray(x0, dtype=np.float64)
-    real_energy = StepKernels.energy
-    monkeypatch.setattr(StepKernels, "energy",
-                        lambda self, x: real_energy(self, x) if np.array_equal(x, start) else np.inf)
+    real = StepKernels.energy_gradient
+    monkeypatch.setattr(StepKernels, "energy_gradient",
+                        lambda self, x, g: real(self, x, g) if np.array_equal(x, start) else np.inf)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = global_newton(p.tets, p.free).solve(p, x0)

@@ -26,6 +26,7 @@ def state(problem):
     kernels = StepKernels(pcg.pattern, p)
     rng = np.random.default_rng(0)
     x = np.ascontiguousarray(p.y_with_constraints() + 0.01 * rng.standard_normal(p.y.shape) * p.free[:, None])
+    kernels.stress_hessians(x)
     kernels.hessian(x)
     inverse_diagonal_blocks_kernel(pcg.pattern.A9, p.tets.astype(np.int32), kernels.grad_rows, kernels.volumes,
                                    kernels.masses, pcg.pattern.free_int, x, kernels.h, *kernels.ground, pcg.D_inv)
