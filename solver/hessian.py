@@ -78,15 +78,19 @@ def _jacobi_rotation(A, V, p: ti.template(), q: ti.template()):
 @ti.func
 def _sym_eig3(A):
     """Eigenvalues (3-vector) and eigenvectors (columns) of a symmetric 3x3 matrix by cyclic Jacobi
-    sweeps, until the off-diagonal part is at round-off (at most 10 sweeps; about 4 are needed)."""
+    sweeps, until the off-diagonal part is at round-off (at most 10 sweeps; about 4 are needed). Each
+    sweep rotates in the (0, 1) plane and then renames the indices cyclically, three times: one rotation
+    in the code, which keeps the kernels that inline this quick to compile."""
     V = ti.Matrix.identity(ti.f64, 3)
     tiny = 1e-30 * (A[0, 0] ** 2 + A[1, 1] ** 2 + A[2, 2] ** 2)
     for _ in range(10):
         if A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2 <= tiny:
             break
-        A, V = _jacobi_rotation(A, V, 0, 1)
-        A, V = _jacobi_rotation(A, V, 0, 2)
-        A, V = _jacobi_rotation(A, V, 1, 2)
+        for _r in range(3):
+            A, V = _jacobi_rotation(A, V, 0, 1)
+            A = ti.Matrix([[A[1, 1], A[1, 2], A[1, 0]], [A[2, 1], A[2, 2], A[2, 0]], [A[0, 1], A[0, 2], A[0, 0]]])
+            V = ti.Matrix.cols([ti.Vector([V[0, 1], V[1, 1], V[2, 1]]), ti.Vector([V[0, 2], V[1, 2], V[2, 2]]),
+                                ti.Vector([V[0, 0], V[1, 0], V[2, 0]])])
     return ti.Vector([A[0, 0], A[1, 1], A[2, 2]]), V
 
 
@@ -259,31 +263,39 @@ def energy_gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: t
     return total
 
 
-_BLOCK_PAIRS = ((0, 0), (0, 1), (0, 2), (0, 3), (1, 1), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3))
-_BLOCK_INDEX = tuple(tuple(_BLOCK_PAIRS.index((k, l)) if k <= l else -1 for l in range(4)) for k in range(4))
-
-
 @ti.func
-def _subtract_outer(blocks: ti.template(), t, weight, R):
-    """blocks[t, p] -= weight R_k R_l^T for every vertex pair p = (k, l), k <= l; R (4x3) has one
-    row per tet vertex."""
-    for p in ti.static(range(10)):
-        k, l = _BLOCK_PAIRS[p]
-        for a, c in ti.static(ti.ndrange(3, 3)):
-            blocks[t, p, a, c] -= weight * R[k, a] * R[l, c]
+def _eigen_rows(q, U, A, evecs, k):
+    """Q_q m_k (3-vector) for eigenpair q of dP/dF (q < 6: twist (even q) and flip (odd q) of the pair
+    (i, j), Q = U (e_i e_j^T -+ e_j e_i^T) V^T / sqrt 2; q >= 6: scaling, Q = U diag(evecs[:, q - 6]) V^T),
+    with a_k = V^T m_k in row k of A (4x3)."""
+    r = ti.Vector.zero(ti.f64, 3)
+    if q < 6:
+        k3 = q // 2
+        i = 1 if k3 == 0 else 0
+        j = 1 if k3 == 2 else 2
+        sign = 1.0 - 2.0 * (q % 2)
+        for a in ti.static(range(3)):
+            r[a] = _SQRT_HALF * (U[a, i] * A[k, j] - sign * U[a, j] * A[k, i])
+    else:
+        for a in ti.static(range(3)):
+            r[a] = U[a, 0] * evecs[0, q - 6] * A[k, 0] + U[a, 1] * evecs[1, q - 6] * A[k, 1] \
+                + U[a, 2] * evecs[2, q - 6] * A[k, 2]
+    return r
 
 
 @ti.func
 def _tet_blocks(x: ti.template(), tets: ti.template(), grad_rows: ti.template(), volumes: ti.template(), mu, lam,
-                project, t, blocks: ti.template()):
-    """blocks (M, 10, 3, 3): the 3x3 blocks (k, l), k <= l in `_BLOCK_PAIRS` order, of each tet's
-    projected Hessian vol B^T A B at x (N, 3), without assembling A. With m_k the gradient rows,
+                project, full, t, slot_of: ti.template(), slots: ti.template()):
+    """Tet t's projected Hessian vol B^T A B at x (N, 3), block by block, into its slots (see
+    `hessian_kernel`), without assembling A. With m_k the gradient rows, block (k, l) is
 
-        block_kl = vol (mu (m_k . m_l) I + lam (C m_k)(C m_l)^T + lam (J - alpha) eps_ace (F (m_k x m_l))_e)
-                   - sum over negative eigenpairs (lambda, Q) of A of vol lambda (Q m_k)(Q m_l)^T,
+        vol (mu (m_k . m_l) I + lam (C m_k)(C m_l)^T + lam (J - alpha) eps_ace (F (m_k x m_l))_e)
+        - sum over negative eigenpairs (lambda, Q) of A of vol lambda (Q m_k)(Q m_l)^T,
 
-    because B^T vec(M) = (M m_k)_k for any 3x3 M. Q m_k only needs a_k = V^T m_k (module docstring).
-    Tet t's blocks; project = 0 leaves them unprojected (the exact Hessian) and skips the eigensystem."""
+    because B^T vec(M) = (M m_k)_k for any 3x3 M; Q m_k only needs a_k = V^T m_k (module docstring).
+    project = 0 leaves the blocks unprojected (the exact Hessian) and skips the eigensystem. The scaling
+    eigenpairs are computed only when the scaling block is not positive definite (Sylvester's criterion).
+    Loops rather than unrolled code over the blocks and eigenpairs keep the kernel quick to compile."""
     F = _deformation_gradient(x, tets, grad_rows, t)
     vol = volumes[t]
     alpha = 1.0 + mu / lam
@@ -292,66 +304,50 @@ def _tet_blocks(x: ti.template(), tets: ti.template(), grad_rows: ti.template(),
     for k, b in ti.static(ti.ndrange(4, 3)):
         m[k, b] = grad_rows[t, k, b]
     Cm = m @ cofactor(F).transpose()                      # row k: C m_k = dJ/dx_k
-    for p in ti.static(range(10)):
-        k, l = _BLOCK_PAIRS[p]
-        mk = ti.Vector([m[k, 0], m[k, 1], m[k, 2]])
-        ml = ti.Vector([m[l, 0], m[l, 1], m[l, 2]])
-        w = scale * (F @ mk.cross(ml))
-        mkml = mu * mk.dot(ml)
-        for a, c in ti.static(ti.ndrange(3, 3)):
-            value = lam * Cm[k, a] * Cm[l, c]
-            if ti.static(a == c):
-                value += mkml
-            else:
-                value += _levi_civita(a, c, 3 - a - c) * w[3 - a - c]
-            blocks[t, p, a, c] = vol * value
+    weights = ti.Vector.zero(ti.f64, 9)                   # vol lambda_q for the negative eigenpairs, else 0
+    R = ti.Matrix.zero(ti.f64, 36, 3)                     # row 4 q + k: Q_q m_k, for the negative eigenpairs q
     if project != 0:
-        _subtract_negative_eigenpairs(F, m, vol, mu, lam, scale, t, blocks)
-
-
-@ti.func
-def _subtract_negative_eigenpairs(F, m, vol, mu, lam, scale, t, blocks: ti.template()):
-    """The projection of `_tet_blocks`: blocks[t] -= vol lambda (Q m_k)(Q m_l)^T for each negative
-    eigenpair (lambda, Q) of dP/dF at F; m (4x3): the gradient rows."""
-    U, s, V = _svd3(F)
-    A = m @ V                                             # row k: a_k = V^T m_k
-    for q in range(6):                                    # twist (even q) and flip (odd q) of the pair (i, j)
-        k3 = q // 2
-        i = 1 if k3 == 0 else 0
-        j = 1 if k3 == 2 else 2
-        sign = 1.0 - 2.0 * (q % 2)
-        eigenvalue = mu + sign * scale * s[k3]
-        if eigenvalue < 0.0:
-            R = ti.Matrix.zero(ti.f64, 4, 3)
-            for k, a in ti.static(ti.ndrange(4, 3)):
-                R[k, a] = _SQRT_HALF * (U[a, i] * A[k, j] - sign * U[a, j] * A[k, i])
-            _subtract_outer(blocks, t, vol * eigenvalue, R)
-    B = _scaling_block(s, mu, lam, scale)
-    if B[0, 0] <= 0.0 or B[0, 0] * B[1, 1] - B[0, 1] ** 2 <= 0.0 or B.determinant() <= 0.0:
-        _subtract_negative_scalings(B, U, A, vol, t, blocks)
-
-
-@ti.func
-def _subtract_negative_scalings(B, U, A, vol, t, blocks: ti.template()):
-    """The scaling part of `_subtract_negative_eigenpairs`, for a scaling block B that is not positive
-    definite (Sylvester's criterion): Q = U diag(e) V^T for each eigenpair (lambda < 0, e) of B."""
-    evals, evecs = _sym_eig3(B)
-    for n in range(3):
-        if evals[n] < 0.0:
-            e = ti.Vector([evecs[0, n], evecs[1, n], evecs[2, n]])
-            R = ti.Matrix.zero(ti.f64, 4, 3)
-            for k in ti.static(range(4)):
-                Uk = U @ (e * ti.Vector([A[k, 0], A[k, 1], A[k, 2]]))
-                for a in ti.static(range(3)):
-                    R[k, a] = Uk[a]
-            _subtract_outer(blocks, t, vol * evals[n], R)
+        U, s, V = _svd3(F)
+        A = m @ V                                         # row k: a_k = V^T m_k
+        evals, evecs = ti.Vector([1.0, 1.0, 1.0]), ti.Matrix.identity(ti.f64, 3)
+        B = _scaling_block(s, mu, lam, scale)
+        if B[0, 0] <= 0.0 or B[0, 0] * B[1, 1] - B[0, 1] ** 2 <= 0.0 or B.determinant() <= 0.0:
+            evals, evecs = _sym_eig3(B)
+        for q in range(9):
+            eigenvalue = evals[q - 6] if q >= 6 else mu + (1.0 - 2.0 * (q % 2)) * scale * s[q // 2]
+            if eigenvalue < 0.0:
+                weights[q] = vol * eigenvalue
+                for k in range(4):
+                    r = _eigen_rows(q, U, A, evecs, k)
+                    for a in ti.static(range(3)):
+                        R[4 * q + k, a] = r[a]
+    for kl in range(16):                                   # the ordered vertex pair (k, l)
+        n = slot_of[t, kl]
+        if n <= -2 and full != 0:
+            n = -2 - n
+        if n >= 0:
+            k, l = kl // 4, kl % 4
+            mk = ti.Vector([m[k, 0], m[k, 1], m[k, 2]])
+            ml = ti.Vector([m[l, 0], m[l, 1], m[l, 2]])
+            w = scale * (F @ mk.cross(ml))
+            block = mu * mk.dot(ml) * ti.Matrix.identity(ti.f64, 3) + lam * ti.Vector(
+                [Cm[k, 0], Cm[k, 1], Cm[k, 2]]).outer_product(ti.Vector([Cm[l, 0], Cm[l, 1], Cm[l, 2]]))
+            block += ti.Matrix([[0.0, w[2], -w[1]], [-w[2], 0.0, w[0]], [w[1], -w[0], 0.0]])   # eps_ace w_e
+            block *= vol
+            for q in range(9):
+                if weights[q] != 0.0:
+                    rk = ti.Vector([R[4 * q + k, 0], R[4 * q + k, 1], R[4 * q + k, 2]])
+                    rl = ti.Vector([R[4 * q + l, 0], R[4 * q + l, 1], R[4 * q + l, 2]])
+                    block -= weights[q] * rk.outer_product(rl)
+            for a, c in ti.static(ti.ndrange(3, 3)):
+                slots[n, a, c] = block[a, c]
 
 
 @ti.kernel
 def hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: ti.types.ndarray(),
                    volumes: ti.types.ndarray(), masses: ti.types.ndarray(), h: ti.f64, mu: ti.f64, lam: ti.f64,
                    has_ground: ti.i32, ground_height: ti.f64, ground_stiffness: ti.f64, project: ti.i32,
-                   full: ti.i32, blocks: ti.types.ndarray(), slot_of: ti.types.ndarray(), slots: ti.types.ndarray(),
+                   full: ti.i32, slot_of: ti.types.ndarray(), slots: ti.types.ndarray(),
                    contribution_start: ti.types.ndarray(), block_entry: ti.types.ndarray(),
                    block_row_length: ti.types.ndarray(), block_vertex: ti.types.ndarray(),
                    lower_blocks: ti.types.ndarray(), data: ti.types.ndarray(), upper_entry: ti.types.ndarray(),
@@ -361,23 +357,15 @@ def hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: t
     diagonal blocks. full = 1: every block into the CSR values `data`, then `upper` = data[upper_entry];
     full = 0: only the blocks on and below the diagonal (`lower_blocks`), straight into `upper`, the upper
     triangle in CSC order that the Cholesky solvers read (half the work; `data` is left as it was).
-    Each tet copies its block of every ordered vertex pair (k, l) to slots[slot_of[t, 4 k + l]] (transposed
-    for k > l; -1: a constrained vertex; -2 - slot: a block above the diagonal, only copied when full),
+    Each tet writes its block of every ordered vertex pair (k, l) to slots[slot_of[t, 4 k + l]] (-1: a
+    constrained vertex; -2 - slot: a block above the diagonal, only written when full),
     so that slots[contribution_start[b]:contribution_start[b + 1]]
     are the tet blocks of block b, read contiguously; block_entry (B,): index of the block's entry
     (0, 0) in `data`; block_row_length (B,):
     entries per scalar row; block_vertex (B,): the vertex of a diagonal block, -1 off the diagonal;
     lower_blocks (L, 3): block index, index of its entry (0, 0) in `upper`, length of its first row there."""
     for t in range(tets.shape[0]):
-        _tet_blocks(x, tets, grad_rows, volumes, mu, lam, project, t, blocks)
-        for k, l in ti.static(ti.ndrange(4, 4)):
-            n = slot_of[t, 4 * k + l]
-            if n <= -2 and full != 0:
-                n = -2 - n
-            if n >= 0:
-                p = _BLOCK_INDEX[min(k, l)][max(k, l)]
-                for a, c in ti.static(ti.ndrange(3, 3)):
-                    slots[n, a, c] = blocks[t, p, a, c] if ti.static(k <= l) else blocks[t, p, c, a]
+        _tet_blocks(x, tets, grad_rows, volumes, mu, lam, project, full, t, slot_of, slots)
     for j in range(block_entry.shape[0] if full != 0 else lower_blocks.shape[0]):
         b = j if full != 0 else lower_blocks[j, 0]
         H = ti.Matrix.zero(ti.f64, 3, 3)
@@ -480,7 +468,6 @@ class HessianPattern:
         n_lower = np.bincount(entry_f[vcols < entry_f], minlength=self.n_free)
         self.lower_blocks = np.stack([lower, self.upper_indptr[3 * entry_f[lower]] + 3 * entry_rank[lower],
                                       3 * n_lower[entry_f[lower]] + 1], axis=1).astype(np.int32)
-        self.blocks = np.zeros((len(tets), 10, 3, 3))
         self.incidence = np.argsort(tets.ravel(), kind="stable").astype(np.int32)       # 4 t + k, by vertex
         self.incidence_start = np.concatenate([[0], np.cumsum(np.bincount(tets.ravel(), minlength=len(free)))]) \
             .astype(np.int32)
@@ -549,7 +536,7 @@ class StepKernels:
         returned as a scipy CSR matrix (full=False returns None)."""
         p = self.pattern
         hessian_kernel(x, self.tets, self.grad_rows, self.volumes, self.masses, self.h, self.mu, self.lam,
-                       *self.ground, int(project), int(full), p.blocks, p.slot_of, p.slots, p.contribution_start,
+                       *self.ground, int(project), int(full), p.slot_of, p.slots, p.contribution_start,
                        p.block_entry, p.block_row_length, p.block_vertex, p.lower_blocks, p.data, p.upper_entry,
                        p.upper)
         if not full:
