@@ -182,6 +182,31 @@ class DirectSolver:
         return superlu_solve(p.matrix(), rhs)
 
 
+def spd_solver(H: sp.spmatrix):
+    """A function b (n,) -> H^-1 b for a symmetric positive definite scipy matrix H (n, n), from one
+    factorisation: CHOLMOD through cvxopt (analysed anew: for matrices whose pattern is not a
+    `HessianPattern`, such as the two-level coarse operator), or SuperLU when cvxopt is missing or
+    finds H not positive definite."""
+    if DirectSolver._importable("cvxopt"):
+        from cvxopt import cholmod, matrix, spmatrix
+
+        upper = sp.triu(H, format="coo")
+        A = spmatrix(matrix(np.asarray(upper.data, dtype=np.float64)), matrix(upper.row.astype(np.int64)),
+                     matrix(upper.col.astype(np.int64)), H.shape)
+        factor = cholmod.symbolic(A, uplo="U")
+        try:
+            cholmod.numeric(A, factor)
+        except ArithmeticError:
+            factor = None
+        if factor is not None:
+            def solve(b):
+                out = matrix(np.ascontiguousarray(b, dtype=np.float64))
+                cholmod.solve(factor, out)
+                return np.array(out).ravel()
+            return solve
+    return spla.splu(H.tocsc(), permc_spec="MMD_AT_PLUS_A").solve
+
+
 def superlu_solve(H: sp.spmatrix, rhs: np.ndarray) -> np.ndarray:
     """SuperLU with the MMD ordering of H^T + H: no positive-definiteness needed."""
     return spla.spsolve(H.tocsc(), rhs, permc_spec="MMD_AT_PLUS_A")

@@ -31,6 +31,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .errors import ConfigError
+from .global_newton import spd_solver
+from .hessian import HessianPattern, StepKernels
 from .newton import StepProblem
 from .prolongation import Prolongation, cage_cells_for, cage_fill, cage_prolongation
 
@@ -126,6 +128,9 @@ class TwoLevelVBD:
         self._cage_tets = T
         self._cage_grad_rows = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
         self._cage_volumes = np.abs(np.linalg.det(Dm)) / 6.0 * fill[used]
+        kept = np.zeros(cage.n_vertices, dtype=bool)
+        kept[pro.kept] = True
+        self._cage_pattern = HessianPattern(T, kept)
         W = pro.weights
         WtW = (W.T @ W).tocsc()
         eps = 1e-8 * float(WtW.diagonal().mean())
@@ -163,16 +168,16 @@ class TwoLevelVBD:
                                    y=np.zeros((n_cage, 3)), free=np.ones(n_cage, bool),
                                    constrained_positions=np.zeros((n_cage, 3)), h=problem.h,
                                    mu=problem.mu, lam=problem.lam)
-        dofs = (3 * self.prolongation.kept[:, None] + np.arange(3)).ravel()
-        elastic = cage_problem.hessian(self.restrict_positions(x))[dofs][:, dofs]
+        # the cage's projected elastic Hessian over its kept nodes, by the Taichi kernels of solver.hessian
+        elastic = StepKernels(self._cage_pattern, cage_problem).hessian(
+            np.ascontiguousarray(self.restrict_positions(x), dtype=np.float64))
         Wc = self._pin_weights
         stiffness = (problem.lam + 2 * problem.mu) * self._pin_lengths      # N/m, about E dx
         penalty = sp.kron(Wc.T @ sp.diags(stiffness) @ Wc, sp.identity(3))
         return (inertia + elastic + penalty).tocsr()
 
     def _factorize(self, x):
-        H = self.coarse_hessian(self._problem, x).tocsc()
-        self._solve = spla.splu(H, permc_spec="MMD_AT_PLUS_A").solve
+        self._solve = spd_solver(self.coarse_hessian(self._problem, x))
 
     # -----------------------------------------------------------------------------------------
     # The cycle
