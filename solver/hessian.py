@@ -61,17 +61,16 @@ def _deformation_gradient(x: ti.template(), tets: ti.template(), grad_rows: ti.t
 
 
 @ti.func
-def _jacobi_rotation(A, V, p: ti.template(), q: ti.template()):
-    """(G^T A G, V G) for the rotation G in the (p, q) plane that zeroes A[p, q]."""
+def _jacobi_rotation(A, V):
+    """(G^T A G, V G) for the rotation G in the (0, 1) plane that zeroes A[0, 1]."""
     G = ti.Matrix.identity(ti.f64, 3)
-    apq = A[p, q]
-    if apq != 0.0:
-        theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+    if A[0, 1] != 0.0:
+        theta = (A[1, 1] - A[0, 0]) / (2.0 * A[0, 1])
         t = 1.0 / (ti.abs(theta) + ti.sqrt(theta * theta + 1.0))
         if theta < 0.0:
             t = -t
         c = 1.0 / ti.sqrt(t * t + 1.0)
-        G[p, p], G[q, q], G[p, q], G[q, p] = c, c, t * c, -t * c
+        G[0, 0], G[1, 1], G[0, 1], G[1, 0] = c, c, t * c, -t * c
     return G.transpose() @ A @ G, V @ G
 
 
@@ -87,7 +86,7 @@ def _sym_eig3(A):
         if A[0, 1] ** 2 + A[0, 2] ** 2 + A[1, 2] ** 2 <= tiny:
             break
         for _r in range(3):
-            A, V = _jacobi_rotation(A, V, 0, 1)
+            A, V = _jacobi_rotation(A, V)
             A = ti.Matrix([[A[1, 1], A[1, 2], A[1, 0]], [A[2, 1], A[2, 2], A[2, 0]], [A[0, 1], A[0, 2], A[0, 0]]])
             V = ti.Matrix.cols([ti.Vector([V[0, 1], V[1, 1], V[2, 1]]), ti.Vector([V[0, 2], V[1, 2], V[2, 2]]),
                                 ti.Vector([V[0, 0], V[1, 0], V[2, 0]])])

@@ -186,28 +186,37 @@ def test_solver_is_cached_per_connectivity_and_free_mask():
         global_newton(p.tets, free).solve(p, p.y)
 
 
-def test_missing_optional_solver_falls_back_to_superlu_with_one_warning(monkeypatch):
+@pytest.mark.parametrize("module, asked, used, message", [
+    ("qdldl", LinearSolver.QDLDL, LinearSolver.SUPERLU, "qdldl.*SuperLU"),
+    ("cvxopt", LinearSolver.AUTO, LinearSolver.QDLDL, "'cvxopt' is not installed.*'qdldl'"),
+])
+def test_a_missing_sparse_solver_falls_back_with_one_warning(monkeypatch, module, asked, used, message):
     p = _bar_with_ground()
     pattern = HessianPattern(p.tets, p.free)
-    monkeypatch.setitem(sys.modules, "qdldl", None)      # makes `import qdldl` fail
+    monkeypatch.setitem(sys.modules, module, None)      # makes `import <module>` fail
     monkeypatch.setattr("solver.global_newton._WARNED", set())
-    with pytest.warns(UserWarning, match="qdldl.*SuperLU"):
-        assert DirectSolver(pattern, LinearSolver.QDLDL).kind is LinearSolver.SUPERLU
+    with pytest.warns(UserWarning, match=message):
+        assert DirectSolver(pattern, asked).kind is used
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert DirectSolver(pattern, LinearSolver.QDLDL).kind is LinearSolver.SUPERLU
+        assert DirectSolver(pattern, asked).kind is used
 
 
-def test_auto_without_cvxopt_warns_once_and_uses_qdldl(monkeypatch):
-    p = _bar_with_ground()
-    pattern = HessianPattern(p.tets, p.free)
-    monkeypatch.setitem(sys.modules, "cvxopt", None)
-    monkeypatch.setattr("solver.global_newton._WARNED", set())
-    with pytest.warns(UserWarning, match="'cvxopt' is not installed.*'qdldl'"):
-        assert DirectSolver(pattern, LinearSolver.AUTO).kind is LinearSolver.QDLDL
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert DirectSolver(pattern, LinearSolver.AUTO).kind is LinearSolver.QDLDL
+@pytest.mark.parametrize("case", ["cholmod", "no cvxopt", "indefinite"])
+def test_spd_solver_solves_with_cholmod_or_superlu(monkeypatch, case):
+    """The two-level coarse solve: CHOLMOD, or SuperLU without cvxopt or for a matrix CHOLMOD rejects."""
+    from solver.global_newton import spd_solver
+
+    rng = np.random.default_rng(1)
+    A = sp.random(30, 30, density=0.2, random_state=2)
+    H = (A @ A.T + sp.identity(30)).tocsr()
+    if case == "indefinite":
+        H = H - 3.0 * sp.identity(30)
+        assert np.linalg.eigvalsh(H.toarray()).min() < 0
+    if case == "no cvxopt":
+        monkeypatch.setitem(sys.modules, "cvxopt", None)
+    b = rng.standard_normal(30)
+    np.testing.assert_allclose(H @ spd_solver(H)(b), b, rtol=0, atol=1e-9)
 
 
 def test_unknown_linear_solver_is_a_config_error():
