@@ -2,7 +2,7 @@
 
 * `JacobiSweep`: the same per-vertex 3x3 Newton update, but all free vertices at once from the
   same old positions (no colouring), written into a temporary field and then applied. It reuses the
-  simulation's arrays and `solver.vertex_solve.force_hessian`, so the only difference to VBD is the ordering.
+  simulation's arrays and `solver.vbd.vertex_solve.force_hessian`, so the only difference to VBD is the ordering.
   `omega` < 1 under-relaxes the update (x += omega H^-1 f).
 * `NumpyVBD`: the Gauss-Seidel VBD sweep colour by colour in vectorised numpy: what a student would
   write without Taichi. It reads the simulation's adjacency arrays once and then works only on numpy.
@@ -11,8 +11,8 @@ import numpy as np
 
 from solver._ti import ti
 
-from solver.layout import X
-from solver.vertex_solve import force_hessian
+from solver.vbd.layout import X
+from solver.vbd.vertex_solve import force_hessian
 
 
 @ti.kernel

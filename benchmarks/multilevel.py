@@ -28,7 +28,7 @@ KEPT = "two-level VBD, kept H_c"
 
 def prepare(sim, state, frames, coarsening):
     """Put `sim` into `state`; returns (x_n, v_n)."""
-    from solver.multilevel import TwoLevelVBD
+    from solver.newton.multilevel import TwoLevelVBD
 
     sim.reset()
     if state == "moving":
@@ -122,7 +122,7 @@ def main(argv=None):
     init_taichi()
     import solver
     from solver.method import wave_cells
-    from solver.multilevel import CoarseRefresh, TwoLevelVBD
+    from solver.newton.multilevel import CoarseRefresh, TwoLevelVBD
 
     os.makedirs(args.out, exist_ok=True)
     checkpoints = [k for k in (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000, 1500,

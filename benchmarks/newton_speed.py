@@ -4,10 +4,10 @@ Three measurements on the pinned cantilever (nu = 0.3, rho = 1000 kg/m^3, h = 1/
 E = 1e6 Pa; the 1,920-tet bar is the stiffness sweep's 0.5 x 0.1 x 0.1 m bar, the others 1 x 0.1 x 0.1 m):
 
 1. a converged step (from y to tolerance 1e-10), warm (after a first call): `newton_solve` against
-   the fast projected Newton (`solver.global_newton`) with each sparse solver;
+   the fast projected Newton (`solver.newton.direct`) with each sparse solver;
 2. one Newton iteration (assembly, solve, line search) on the large bar, same methods;
 3. time and iterations to relative error ||x - x*|| / ||x* - x_n|| <= 1e-4 (and 1e-6) of the direct
-   Newton and of Newton-PCG with each preconditioner (`solver.pcg`), from rest and from a stretched
+   Newton and of Newton-PCG with each preconditioner (`solver.newton.pcg`), from rest and from a stretched
    state, where x* is the direct Newton solution to tolerance 1e-12.
 
 Times are medians of --repeats runs in one process; on a shared machine they are noisy.
@@ -50,8 +50,8 @@ def bar_problem(size, cells, youngs_modulus=1e6, state="rest"):
 def solvers():
     """name -> function(problem) returning an object with .solve(problem, x0, tolerance, max_iterations,
     keep_iterates, time_budget): the direct Newton with each sparse solver and Newton-PCG."""
-    from solver.global_newton import LinearSolver, global_newton
-    from solver.pcg import Preconditioner, newton_pcg
+    from solver.newton.direct import LinearSolver, global_newton
+    from solver.newton.pcg import Preconditioner, newton_pcg
 
     out = {f"Newton ({s.value})": (lambda p, s=s: global_newton(p.tets, p.free, s)) for s in LinearSolver
            if s is not LinearSolver.AUTO}
@@ -127,7 +127,7 @@ def measure_steps(rows, label, size, cells, repeats, max_iterations, names):
 
 def measure_curves(curve_rows, rows, size, cells, states, budget, names):
     """Section 3: time and iterations to reach each error threshold."""
-    from solver.global_newton import fast_newton_solve
+    from solver.newton.direct import fast_newton_solve
 
     methods = solvers()
     for state in states:

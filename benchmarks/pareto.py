@@ -190,7 +190,7 @@ def newton_curve(case, result):
 
 
 def two_level_curve(case, ml, budget, max_cycles):
-    """Rows of two-level VBD (`solver.multilevel.TwoLevelVBD`): error after each cycle; seconds
+    """Rows of two-level VBD (`solver.newton.multilevel.TwoLevelVBD`): error after each cycle; seconds
     measured, including begin_step (the step problem, the initial guess) and the coarse assembly
     and factorisation in the first cycle, not the error evaluation."""
     case.load(ml.sim)
@@ -226,7 +226,7 @@ def main(argv=None):
     import solver
     from benchmarks.baselines import JacobiSweep
     from benchmarks.newton_speed import pareto_curve
-    from solver.multilevel import TwoLevelVBD
+    from solver.newton.multilevel import TwoLevelVBD
 
     if args.quick:
         resolutions = {"240": (10, 2, 2)}

@@ -88,7 +88,7 @@ def aligned_deviation(x, X):
 
 
 def min_J(x, mesh):
-    import solver.mesh as sm
+    import solver.mesh.tetmesh as sm
     return float((sm.signed_volumes(x, mesh.tets) / mesh.rest_volumes()).min())
 
 

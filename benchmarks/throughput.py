@@ -43,7 +43,7 @@ COLUMNS = ["tets", "vertices", "cells", "precision", "threads", "n_colors", "ns_
 def _probe_class():
     from solver._ti import ti
 
-    from solver.layout import X, Y
+    from solver.vbd.layout import X, Y
 
     @ti.kernel
     def read_all_colors(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),

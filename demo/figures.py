@@ -44,7 +44,7 @@ FIGURES = NOTES / "figures"
 NUMBERS = "numbers.json"
 MANIFEST = "manifest.json"
 # What every section's figures are drawn from, besides the section's own code in this module.
-DEPENDENCIES = ("solver/*.py", "demo/scenes.py", "demo/runner.py", "demo/compose.py", "demo/render.py",
+DEPENDENCIES = ("solver/**/*.py", "demo/scenes.py", "demo/runner.py", "demo/compose.py", "demo/render.py",
                 "demo/colors.py", "assets/*")
 
 GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
@@ -361,7 +361,7 @@ def section_coloring(out, full, size):
     import numpy as np
 
     import solver
-    from solver.topology import vertex_neighbours
+    from solver.mesh.topology import vertex_neighbours
 
     from . import scenes
 

@@ -72,7 +72,7 @@ TASKS = (
     Task(
         id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=30,
         chapter="lecture_notes/03-coordinate-descent.md",
-        functions=("solver/material.py:vertex_force_hessian",),
+        functions=("solver/physics/material.py:vertex_force_hessian",),
         what={"vertex_force_hessian": "the contribution of one tet to the force f_i and the 3x3 Hessian H_i "
                                       "of its vertex i"},
         details="Given `F m`, `J = det F`, `w = dJ/dx_i = cof(F) m`, `|m|^2` and the rest volume, return the "
@@ -84,7 +84,7 @@ TASKS = (
     Task(
         id="coloring", title="Greedy graph colouring", points=20,
         chapter="lecture_notes/04-parallelism.md",
-        functions=("solver/coloring.py:_greedy",),
+        functions=("solver/mesh/coloring.py:_greedy",),
         what={"_greedy": "give vertex order[k] the smallest colour that none of its already coloured "
                          "neighbours has"},
         details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
@@ -97,12 +97,12 @@ TASKS = (
     Task(
         id="vbd_sweep", title="The per-colour VBD sweep: assemble and solve each vertex's 3x3 system",
         points=30, chapter="lecture_notes/03-coordinate-descent.md",
-        functions=("solver/vertex_solve.py:force_hessian", "solver/vertex_solve.py:newton_step"),
+        functions=("solver/vbd/vertex_solve.py:force_hessian", "solver/vbd/vertex_solve.py:newton_step"),
         what={"force_hessian": "assemble f_i and H_i of vertex i from its inertia term and the tets "
                                "around it",
               "newton_step": "vertex i's 3x3 Newton step dx = H_i^-1 f_i, zero for a singular H_i"},
         depends=("force_hessian", "coloring"),
-        details="In `force_hessian` (solver/vertex_solve.py), add the inertia term `m_i/h^2 (y_i - x_i)` (and "
+        details="In `force_hessian` (solver/vbd/vertex_solve.py), add the inertia term `m_i/h^2 (y_i - x_i)` (and "
                 "`m_i/h^2 I`) and loop over the tets around the vertex with `tet_kinematics` and "
                 "`vertex_force_hessian`. In `newton_step`, solve the 3x3 system for the step `dx` "
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
@@ -117,7 +117,7 @@ TASKS = (
     Task(
         id="chebyshev", title="Chebyshev acceleration", points=20,
         chapter="lecture_notes/06-what-helps.md",
-        functions=("solver/chebyshev.py:chebyshev_omega", "solver/chebyshev.py:chebyshev_update"),
+        functions=("solver/vbd/chebyshev.py:chebyshev_omega", "solver/vbd/chebyshev.py:chebyshev_update"),
         what={"chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
               "chebyshev_update": "the accelerated update x = omega (x - x^(k-2)) + x^(k-2) and the history "
                                   "shift (VBD Eq. 18)"},

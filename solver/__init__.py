@@ -9,20 +9,20 @@ Importing this package does not initialise Taichi; `Simulation` does that on fir
     sim.step()
 """
 from .backend import Precision, ensure_taichi
-from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
-from .contact import Ground
+from .mesh.coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
+from .physics.ground import Ground
 from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
-from .global_newton import LinearSolver, fast_newton_solve
-from .material import Material
-from .mesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
+from .newton.direct import LinearSolver, fast_newton_solve
+from .physics.material import Material
+from .mesh.tetmesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
 from .method import Method
 from .metrics import relative_energy_gap, relative_error
-from .newton import NewtonResult, StepProblem, newton_solve
-from .pcg import Preconditioner, newton_pcg
-from .quality import MeshQuality, det_F, inverted_count
-from .simulation import InitialGuess, IterationRecord, Simulation
-from .tetrahedralize import Mesher
-from .topology import Topology
+from .newton.oracle import NewtonResult, StepProblem, newton_solve
+from .newton.pcg import Preconditioner, newton_pcg
+from .mesh.quality import MeshQuality, det_F, inverted_count
+from .vbd.simulation import InitialGuess, IterationRecord, Simulation
+from .mesh.tetrahedralize import Mesher
+from .mesh.topology import Topology
 
 __all__ = [
     "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",

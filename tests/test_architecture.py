@@ -26,7 +26,7 @@ def _compiled(kernel) -> int:
 
 
 def test_a_second_simulation_of_the_same_mesh_reuses_topology_and_kernels():
-    from solver import implicit_euler, vertex_solve
+    from solver.vbd import implicit_euler, vertex_solve
 
     first = cantilever(cells=(12, 3, 3))
     first.step()

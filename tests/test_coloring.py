@@ -64,7 +64,7 @@ def test_more_than_64_colors_is_reported():
 def test_a_cache_written_by_other_coloring_code_is_never_read(monkeypatch, tmp_path):
     """The disk cache is keyed on the source of `_greedy`: a homework starter never shows a colouring
     that the reference solution (or an earlier version of the student's code) cached."""
-    from solver import coloring
+    from solver.mesh import coloring
 
     monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
     mesh = solver.box_mesh(cells=(5, 2, 3))

@@ -7,8 +7,8 @@ import pytest
 import scipy.sparse as sp
 
 import solver
-from solver.global_newton import DirectSolver, GlobalNewton, LinearSolver, fast_newton_solve, global_newton
-from solver.hessian import HessianPattern, StepKernels
+from solver.newton.direct import DirectSolver, GlobalNewton, LinearSolver, fast_newton_solve, global_newton
+from solver.newton.hessian import HessianPattern, StepKernels
 
 
 def _bar_with_ground():
@@ -85,7 +85,7 @@ def test_energy_gradient_and_projected_hessian_match_the_oracle(problem):
 def test_projection_of_an_inverted_and_a_degenerate_tet():
     """Inverted (det F < 0), flattened and rest-state tets: the closed-form eigensystem gives the
     same projected dP/dF as a dense eigendecomposition."""
-    from solver.material import d2psi_dF2_np
+    from solver.physics.material import d2psi_dF2_np
 
     rng = np.random.default_rng(3)
     F = np.stack([np.eye(3), np.diag([1.0, 1.0, -0.5]), np.diag([1.0, 1.0, 1e-9]),
@@ -194,7 +194,7 @@ def test_a_missing_sparse_solver_falls_back_with_one_warning(monkeypatch, module
     p = _bar_with_ground()
     pattern = HessianPattern(p.tets, p.free)
     monkeypatch.setitem(sys.modules, module, None)      # makes `import <module>` fail
-    monkeypatch.setattr("solver.global_newton._WARNED", set())
+    monkeypatch.setattr("solver.newton.direct._WARNED", set())
     with pytest.warns(UserWarning, match=message):
         assert DirectSolver(pattern, asked).kind is used
     with warnings.catch_warnings():
@@ -205,7 +205,7 @@ def test_a_missing_sparse_solver_falls_back_with_one_warning(monkeypatch, module
 @pytest.mark.parametrize("case", ["cholmod", "no cvxopt", "indefinite"])
 def test_spd_solver_solves_with_cholmod_or_superlu(monkeypatch, case):
     """The two-level coarse solve: CHOLMOD, or SuperLU without cvxopt or for a matrix CHOLMOD rejects."""
-    from solver.global_newton import spd_solver
+    from solver.newton.direct import spd_solver
 
     rng = np.random.default_rng(1)
     A = sp.random(30, 30, density=0.2, random_state=2)

@@ -225,7 +225,7 @@ def test_coloring_picture_needs_only_the_coloring_task(tmp_path):
 
     import solver
     from demo import scenes
-    from solver import coloring
+    from solver.mesh import coloring
 
     out = tmp_path / "hw"
     homework.generate(out, quiet=True)
@@ -248,7 +248,7 @@ def test_coloring_picture_needs_only_the_coloring_task(tmp_path):
 
 
 def test_starter_imports_cleanly(starter):
-    result = run(["-c", "import solver, solver.simulation, demo, demo.scenes, demo.runner; print('ok')"], starter)
+    result = run(["-c", "import solver, solver.vbd.simulation, demo, demo.scenes, demo.runner; print('ok')"], starter)
     assert result.returncode == 0 and "ok" in result.stdout, result.stderr
 
 
@@ -314,7 +314,7 @@ def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
     assert main(["homework", "--out", str(out), "--overwrite"]) == 0
     assert (out / "notes.txt").read_text() == "mine"          # a folder we did not write is never emptied
-    assert (out / "solver" / "material.py").exists()
+    assert (out / "solver" / "physics" / "material.py").exists()
     (out / "stale.py").write_text("")
     assert main(["homework", "--out", str(out), "--overwrite"]) == 0
     assert not (out / "stale.py").exists()                    # an earlier starter is replaced cleanly
@@ -339,12 +339,12 @@ def test_a_starter_cannot_make_a_starter(starter, tmp_path):
 ])
 def test_malformed_regions_are_reported(source, match):
     with pytest.raises(DemoError, match=match):
-        homework.find_regions(Path("solver/coloring.py"), source)
+        homework.find_regions(Path("solver/mesh/coloring.py"), source)
 
 
 def test_markers_in_strings_are_not_regions():
     source = 'def f():\n    """\n    # BEGIN SOLUTION task=coloring\n    """\n    return 1\n'
-    assert homework.find_regions(Path("solver/coloring.py"), source) == []
+    assert homework.find_regions(Path("solver/mesh/coloring.py"), source) == []
 
 
 def test_require_implemented_reads_the_todo_line(tmp_path):

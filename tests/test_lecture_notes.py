@@ -140,7 +140,7 @@ def test_figure_check_catches_changed_code_parameters_and_pictures(tmp_path):
     edits = [("demo/scenes.py", "frames=41, fps=5", "frames=41, fps=6"),     # a scene parameter
              ("demo/figures.py", "saved = (1, 5, 20, 40)", "saved = (1, 5, 20, 30)"),   # the section's own code
              ("demo/figures.py", "n_colors=256", "n_colors=255"),              # a helper the section calls
-             ("solver/material.py", "alpha = 1.0 + mu / lam\n", "alpha = 1.0 + 0.5 * mu / lam\n")]   # the solver
+             ("solver/physics/material.py", "alpha = 1.0 + mu / lam\n", "alpha = 1.0 + 0.5 * mu / lam\n")]   # the solver
     for name, old, new in edits:
         path = root / name
         text = path.read_text()
@@ -151,7 +151,7 @@ def test_figure_check_catches_changed_code_parameters_and_pictures(tmp_path):
         path.write_text(text)
         assert _propagation_problems(root, out) == [], name
     # comments do not change a figure, and a section's hash ignores other sections' code
-    path = root / "solver" / "material.py"
+    path = root / "solver" / "physics" / "material.py"
     path.write_text(path.read_text().replace("# Taichi functions used inside", "# Taichi functions, used in"))
     path = root / "demo" / "figures.py"
     path.write_text(path.read_text().replace('rhos = (None, 0.8, 0.9, 0.95, 0.98)', 'rhos = (None, 0.9)'))

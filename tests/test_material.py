@@ -5,7 +5,7 @@ import pytest
 import taichi as ti
 
 import solver
-from solver.material import (cofactor, d2psi_dF2_np, dpsi_dF, dpsi_dF_np, psi, psi_np,
+from solver.physics.material import (cofactor, d2psi_dF2_np, dpsi_dF, dpsi_dF_np, psi, psi_np,
                              vertex_force_hessian)
 
 MAT = solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)

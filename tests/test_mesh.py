@@ -5,7 +5,7 @@ import pytest
 import trimesh
 
 import solver
-from solver.mesh import signed_volumes
+from solver.mesh.cells import signed_volumes
 
 
 def test_box_mesh_is_conforming_positive_and_fills_the_box():

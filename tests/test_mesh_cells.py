@@ -8,7 +8,7 @@ import trimesh
 
 import solver
 from solver.errors import MeshWarning
-from solver.mesh import kuhn_tets
+from solver.mesh.cells import kuhn_tets
 
 # Hexahedron corners in meshio/VTK order, as lattice offsets (dx, dy, dz).
 HEX = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]])
@@ -126,7 +126,7 @@ def test_a_genuinely_folded_mesh_is_rejected():
     inner = np.flatnonzero(np.all(np.isclose(box.vertices, 1 / 3), axis=1))[0]
     folded = box.vertices.copy()
     folded[inner] = [0.8, 0.75, 0.7]                 # pushed out of its star: 6 tets turn inside out
-    assert (solver.mesh.signed_volumes(folded, box.tets) < 0).sum() == 6
+    assert (solver.mesh.tetmesh.signed_volumes(folded, box.tets) < 0).sum() == 6
     with pytest.raises(solver.MeshError, match="folds over itself"):
         solver.TetMesh(folded, box.tets)
 

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 import solver
-from solver.mesh import face_components
-from solver.quality import degenerate_mask, dihedral_angles, radius_ratio
+from solver.mesh.tetmesh import face_components
+from solver.mesh.quality import degenerate_mask, dihedral_angles, radius_ratio
 
 REGULAR = np.array([[1.0, 1, 1], [1, -1, -1], [-1, -1, 1], [-1, 1, -1]])
 
@@ -59,7 +59,7 @@ def test_flat_and_inverted_tets_are_counted():
     x = np.vstack([REGULAR, flat])
     tets = np.array([[0, 1, 2, 3], [0, 2, 1, 3], [4, 5, 6, 7]])
     assert degenerate_mask(x, tets).tolist() == [False, False, True]
-    q = solver.quality.mesh_quality(x, tets)
+    q = solver.mesh.quality.mesh_quality(x, tets)
     assert (q.n_inverted, q.n_degenerate, q.n_slivers) == (1, 1, 2)
 
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import solver
-from solver.multilevel import CoarseOperator, CoarseRefresh, TwoLevelVBD
-from solver.prolongation import cage_cells_for, cage_prolongation
+from solver.newton.multilevel import CoarseOperator, CoarseRefresh, TwoLevelVBD
+from solver.newton.prolongation import cage_cells_for, cage_prolongation
 
 STIFF = solver.Material(youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0)
 
@@ -116,11 +116,11 @@ def test_two_level_converges_to_the_newton_solution(operator):
 
 
 def test_rediscretized_coarse_hessian_matches_the_numpy_cage_hessian():
-    """The cage's elastic Hessian comes from the Taichi kernels (solver.hessian). At a bent state, where
+    """The cage's elastic Hessian comes from the Taichi kernels (solver.newton.hessian). At a bent state, where
     the projection is active, H_c minus the numpy oracle's projected cage Hessian (restricted to the
     kept nodes) is the same as at rest: the inertia and pin terms, which do not depend on x. And the
     coarse solve inverts H_c."""
-    from solver.newton import StepProblem
+    from solver.newton.oracle import StepProblem
 
     sim = stiff_bar(cells=(12, 2, 2))
     rest = sim.positions

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 import solver
-from solver.hessian import StepKernels
-from solver.pcg import NewtonPCG, Preconditioner, inverse_diagonal_blocks_kernel
+from solver.newton.hessian import StepKernels
+from solver.newton.pcg import NewtonPCG, Preconditioner, inverse_diagonal_blocks_kernel
 
 
 @pytest.fixture(scope="module")

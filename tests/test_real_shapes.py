@@ -30,7 +30,7 @@ def test_real_shapes_load_without_warnings_and_fill_their_surface(tets, surface)
     scale = 0.2 / np.ptp(closed.vertices, axis=0).max()
     assert mesh.rest_volumes().sum() == pytest.approx(closed.volume * scale ** 3, rel=0.03)
     # one face-connected body, boundary closed
-    assert (solver.mesh.face_components(mesh.tets) == 0).all()
+    assert (solver.mesh.tetmesh.face_components(mesh.tets) == 0).all()
     assert trimesh.Trimesh(mesh.vertices, mesh.boundary_faces(), process=False).is_watertight
 
 

@@ -7,10 +7,10 @@ import pytest
 import trimesh
 
 import solver
-from solver.mesh import face_components
-from solver.tetrahedralize import tetwild_available
+from solver.mesh.tetmesh import face_components
+from solver.mesh.tetrahedralize import tetwild_available
 from solver.errors import MeshWarning
-from solver.voxelize import largest_face_connected, tetrahedralize_surface
+from solver.mesh.voxelize import largest_face_connected, tetrahedralize_surface
 
 needs_tetwild = pytest.mark.skipif(
     not tetwild_available(), reason="optional mesher pytetwild not installed (pip install -r requirements-mesh.txt)")

@@ -8,7 +8,7 @@ from solver.todo import require_implemented
 
 
 def _resolve(spec: str):
-    """'solver/vertex_solve.py:newton_step' -> the function object."""
+    """'solver/vbd/vertex_solve.py:newton_step' -> the function object."""
     path, name = spec.split(":")
     obj = importlib.import_module(path[:-3].replace("/", "."))
     for part in name.split("."):

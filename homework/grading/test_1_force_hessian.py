@@ -4,7 +4,7 @@ import pytest
 
 from gradelib import random_rotation, require
 from solver._ti import ti
-from solver.material import cofactor_np, dpsi_dF_np, psi_np, vertex_force_hessian
+from solver.physics.material import cofactor_np, dpsi_dF_np, psi_np, vertex_force_hessian
 
 pytestmark = pytest.mark.task("force_hessian")
 

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from gradelib import bar, require
-from solver.coloring import VertexOrder, color_vertices, is_valid_coloring
-from solver.topology import vertex_neighbours
+from solver.mesh.coloring import VertexOrder, color_vertices, is_valid_coloring
+from solver.mesh.topology import vertex_neighbours
 
 pytestmark = pytest.mark.task("coloring")
 

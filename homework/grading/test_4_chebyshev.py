@@ -5,8 +5,8 @@ import taichi as ti
 
 import solver
 from gradelib import bar, require, simulation
-from solver.chebyshev import chebyshev_omega, chebyshev_update
-from solver.layout import STATE_ROWS, X, X_PREV, X_PREV2
+from solver.vbd.chebyshev import chebyshev_omega, chebyshev_update
+from solver.vbd.layout import STATE_ROWS, X, X_PREV, X_PREV2
 
 pytestmark = pytest.mark.task("chebyshev")
 

@@ -18,8 +18,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .contact import ground_energy_np, ground_gradient_np, ground_hessian_diag_np
-from .material import d2psi_dF2_np, dpsi_dF_np, psi_np
+from ..physics.ground import ground_energy_np, ground_gradient_np, ground_hessian_diag_np
+from ..physics.material import d2psi_dF2_np, dpsi_dF_np, psi_np
 
 
 @dataclass(frozen=True)

@@ -30,10 +30,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .errors import ConfigError
-from .global_newton import spd_solver
+from ..errors import ConfigError
+from .direct import spd_solver
 from .hessian import HessianPattern, StepKernels
-from .newton import StepProblem
+from .oracle import StepProblem
 from .prolongation import Prolongation, cage_cells_for, cage_fill, cage_prolongation
 
 

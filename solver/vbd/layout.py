@@ -5,7 +5,7 @@ is compiled once per process and shared by every `Simulation`; a kernel launch p
 arrays, so the per-vertex 3-vectors live as rows of one (STATE_ROWS, N) array of 3-vectors and the
 scalar settings as one (PARAM_COUNT,) array.
 """
-from ._ti import ti
+from .._ti import ti
 
 # Rows of `state`, shape (STATE_ROWS, N) of 3-vectors.
 X = 0          # current iterate x

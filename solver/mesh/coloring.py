@@ -15,11 +15,11 @@ from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
-from ._ti import ti
+from .._ti import ti
 
-from .backend import ensure_taichi
-from .errors import MeshError
-from .todo import require_implemented
+from ..backend import ensure_taichi
+from ..errors import MeshError
+from ..todo import require_implemented
 from .topology import vertex_neighbours
 
 MAX_COLORS = 64

@@ -8,7 +8,7 @@ state (STATE_ROWS, N) 3-vectors; free (N,) int32, 1 for the vertices VBD solves;
 """
 from enum import Enum
 
-from ._ti import ti
+from .._ti import ti
 
 from .layout import GRAVITY_X, TIME_STEP, V, V_PREV, X, X_N, X_PREV, X_PREV2, Y
 

@@ -58,3 +58,39 @@ def linear_cell(cell_type: str):
     "tetra10" or "hexahedron27"; None for any other type."""
     base = cell_type.rstrip("0123456789")
     return base if base in CORNERS else None
+
+
+def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed tet volumes `det[x1-x0, x2-x0, x3-x0] / 6`; vertices (N,3), tets (M,4) -> (M,)."""
+    x = vertices[tets]
+    return np.linalg.det(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)) / 6.0
+
+
+def kuhn_tets(cells: np.ndarray, node_dims) -> np.ndarray:
+    """Split hexahedral lattice cells into 6 tets each (Kuhn/Freudenthal split along the main diagonal).
+
+    cells: (C, 3) integer cell coordinates (i, j, k); node_dims: (nx+1, ny+1, nz+1) lattice nodes.
+    Every cell is cut the same way, so neighbouring cells share faces exactly (a conforming mesh).
+    Returns (6C, 4) node indices `(i * ny1 + j) * nz1 + k`, not yet oriented.
+    """
+    _, ny1, nz1 = node_dims
+    paths = []
+    for axes in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        corner = np.zeros(3, dtype=np.int64)
+        path = [corner.copy()]
+        for a in axes:
+            corner[a] += 1
+            path.append(corner.copy())
+        paths.append(path)
+    offsets = np.array(paths)                                  # (6, 4, 3)
+    nodes = cells[:, None, None, :] + offsets[None]            # (C, 6, 4, 3)
+    index = (nodes[..., 0] * ny1 + nodes[..., 1]) * nz1 + nodes[..., 2]
+    return index.reshape(-1, 4)
+
+
+def oriented_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Swap two vertices of every negatively oriented tet (used by generators, whose tets are valid)."""
+    tets = tets.copy()
+    neg = signed_volumes(vertices, tets) < 0
+    tets[neg] = tets[neg][:, [0, 1, 3, 2]]
+    return tets

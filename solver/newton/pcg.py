@@ -25,13 +25,13 @@ from enum import Enum
 
 import numpy as np
 
-from ._ti import ti
-from .backend import ensure_taichi
-from .coloring import color_vertices
-from .errors import ConfigError, enum_value
-from .global_newton import LinearSolver, global_newton, newton_iterations
+from .._ti import ti
+from ..backend import ensure_taichi
+from ..mesh.coloring import color_vertices
+from ..errors import ConfigError, enum_value
+from .direct import LinearSolver, global_newton, newton_iterations
 from .hessian import StepKernels
-from .newton import NewtonResult
+from .oracle import NewtonResult
 
 
 class Preconditioner(Enum):
@@ -298,7 +298,7 @@ _CACHE = {}
 def newton_pcg(tets: np.ndarray, free: np.ndarray, preconditioner=Preconditioner.COLOR_SWEEP,
                forcing: float = 0.01, max_cg_iterations: int = 500) -> NewtonPCG:
     """The `NewtonPCG` of this connectivity, free mask and settings, built on first use and cached."""
-    from .global_newton import connectivity_key
+    from .direct import connectivity_key
 
     key = connectivity_key(tets, free) + (str(getattr(preconditioner, "value", preconditioner)), float(forcing),
                                           int(max_cg_iterations))

@@ -6,11 +6,11 @@
 state (STATE_ROWS, N) 3-vectors; mass (N,); free (N,) int32; tets (M,) 4-vectors of int32;
 Dm_inv (M,) 3x3 inverse rest edge matrices; volume (M,) rest volumes; params (PARAM_COUNT,).
 """
-from ._ti import ti
+from .._ti import ti
 
-from .contact import ground_energy
+from ..physics.ground import ground_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, LAM, MU, TIME_STEP, X, Y
-from .material import psi
+from ..physics.material import psi
 
 
 @ti.func

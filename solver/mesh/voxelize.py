@@ -12,8 +12,8 @@ import warnings
 
 import numpy as np
 
-from .errors import MeshError, MeshWarning
-from .mesh import kuhn_tets, oriented_tets
+from ..errors import MeshError, MeshWarning
+from .cells import kuhn_tets, oriented_tets
 
 
 def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, pitch: float,

@@ -21,23 +21,23 @@ from typing import Callable, NamedTuple, Optional
 from weakref import WeakKeyDictionary
 
 import numpy as np
-from ._ti import ti
+from .._ti import ti
 
 from . import energy as energy_kernels
 from . import implicit_euler, orientation
 from . import layout as L
 from . import translation, vertex_solve
-from .backend import as_precision, ensure_taichi
+from ..backend import as_precision, ensure_taichi
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
-from .coloring import Coloring, VertexOrder, color_vertices
-from .contact import Ground
-from .errors import ConfigError, VBDError
+from ..mesh.coloring import Coloring, VertexOrder, color_vertices
+from ..physics.ground import Ground
+from ..errors import ConfigError, VBDError
 from .implicit_euler import InitialGuess
-from .material import Material, vertex_force_hessian
-from .method import Method, as_method, choose, multilevel_cycles, wave_cells
-from .mesh import TetMesh
-from .todo import require_implemented
-from .topology import Topology, build_topology, grad_rows
+from ..physics.material import Material, vertex_force_hessian
+from ..method import Method, as_method, choose, multilevel_cycles, wave_cells
+from ..mesh.tetmesh import TetMesh
+from ..todo import require_implemented
+from ..mesh.topology import Topology, build_topology, grad_rows
 
 __all__ = ["Ground", "InitialGuess", "IterationRecord", "Simulation", "SweepArrays"]
 
@@ -606,7 +606,7 @@ class Simulation:
                 self._global_step()
 
     def _multilevel(self):
-        from .multilevel import TwoLevelVBD
+        from ..newton.multilevel import TwoLevelVBD
 
         cycles = multilevel_cycles(self._iterations)
         if self._two_level is None or self._two_level.cycles != cycles:
@@ -615,8 +615,8 @@ class Simulation:
 
     def _global_step(self):
         """One step minimised to convergence by the global Newton (direct or PCG), from VBD's guess."""
-        from .global_newton import fast_newton_solve
-        from .pcg import newton_pcg
+        from ..newton.direct import fast_newton_solve
+        from ..newton.pcg import newton_pcg
 
         problem = self.step_problem()
         self.begin_step()
@@ -769,7 +769,7 @@ class Simulation:
 
     def step_problem(self):
         """The minimisation the next `step()` solves, as a `StepProblem` for the Newton reference."""
-        from .newton import StepProblem
+        from ..newton.oracle import StepProblem
 
         if self._in_step:
             raise ConfigError("step_problem() is defined between steps; call end_step() first")
@@ -793,7 +793,7 @@ class Simulation:
         warm-start `solver.fast_newton_solve(problem, sim.positions)` after it. Solved by the Taichi
         Newton (`global_newton`); `solver.newton_solve` is its independent numpy twin.
         """
-        from .global_newton import fast_newton_solve
+        from ..newton.direct import fast_newton_solve
 
         tolerance = _positive(tolerance, "tolerance", "(relative)")
         max_iterations = _count(max_iterations, "max_iterations")

@@ -4,7 +4,7 @@ After iteration k, x^(k) = omega_k (x^(k) - x^(k-2)) + x^(k-2): an over-relaxati
 follows the Chebyshev recurrence for an estimated spectral radius rho of the plain iteration
 (lecture notes, chapter 6). rho too close to 1 over-shoots and diverges.
 """
-from ._ti import ti
+from .._ti import ti
 
 from .layout import X, X_PREV, X_PREV2
 

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import ConfigError
-from .mesh import TetMesh, box_mesh, signed_volumes
+from ..errors import ConfigError
+from ..mesh.cells import signed_volumes
+from ..mesh.tetmesh import TetMesh, box_mesh
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,9 +9,9 @@ displacement u of the current step, with IPC's smoothed Coulomb law below the sl
 from dataclasses import dataclass
 
 import numpy as np
-from ._ti import ti
+from .._ti import ti
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 @dataclass(frozen=True)

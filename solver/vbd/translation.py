@@ -12,7 +12,7 @@ Galerkin coarse correction whose coarse space is the translations; it only appli
 fixed or kinematic vertices, whose elastic energy is translation invariant. Friction is not a
 potential and stays out of K_c (its lagged stiffness would block the correction on the ground).
 """
-from ._ti import ti
+from .._ti import ti
 
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X
 from .vertex_solve import force_hessian

@@ -13,9 +13,9 @@ Newton reference and the tests, which check one against the other and against fi
 from dataclasses import dataclass
 
 import numpy as np
-from ._ti import ti
+from .._ti import ti
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 
 @dataclass(frozen=True)

@@ -4,7 +4,7 @@
 
 The same G as `solver.newton.StepProblem` (the numpy oracle), evaluated in parallel kernels. The
 Hessian of each tet is vol B^T A B, where B = dF/dx (9 x 12) and A is the 9x9 stress Hessian dP/dF
-of the stable Neo-Hookean energy (solver/material.py) projected to positive semi-definite: its
+of the stable Neo-Hookean energy (solver/physics/material.py) projected to positive semi-definite: its
 negative eigenvalues clamped to 0, as the oracle does with a dense eigendecomposition.
 
 Closed-form eigensystem of A (derived as in Smith et al. 2019, "Analytic eigensystems for isotropic
@@ -33,8 +33,8 @@ import math
 import numpy as np
 import scipy.sparse as sp
 
-from ._ti import ti
-from .material import cofactor, dpsi_dF, psi
+from .._ti import ti
+from ..physics.material import cofactor, dpsi_dF, psi
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 _PAIRS = ((1, 2, 0), (0, 2, 1), (0, 1, 2))    # (i, j, k): the pair and the third index

@@ -18,7 +18,7 @@ import tempfile
 
 import numpy as np
 
-from .errors import ConfigError, MeshError
+from ..errors import ConfigError, MeshError
 
 # fTetWild's envelope: the output surface stays within this fraction of the bounding-box diagonal
 # of the input (fTetWild's default is 1e-3; 5e-3 keeps small assets at a few thousand tets).

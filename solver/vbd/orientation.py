@@ -13,7 +13,7 @@ together when a simulation keeps orientation:
 
 state (STATE_ROWS, N) 3-vectors; tets (M,) 4-vectors of int32; free (N,) int32.
 """
-from ._ti import ti
+from .._ti import ti
 
 from .layout import X, X_N
 

@@ -15,13 +15,13 @@ state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of 
 offsets (S + 1,) int32 first adjacency entry of each slot; others (E, 3) int32; adj_f (E, ADJ_FLOATS);
 params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 """
-from ._ti import ti
+from .._ti import ti
 
-from .contact import ground_force_hessian
+from ..physics.ground import ground_force_hessian
 from .layout import (ADJ_FLOATS, C, DAMPING, FRICTION, FRICTION_SPEED, GROUND, GROUND_HEIGHT,
                      GROUND_STIFFNESS, KEEP_ORIENTATION, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
                      X_N, Y)
-from .material import vertex_force_hessian
+from ..physics.material import vertex_force_hessian
 
 assert ADJ_FLOATS == VOLUME + 1
 J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a tenth of its rest volume

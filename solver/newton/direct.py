@@ -30,10 +30,10 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from .backend import ensure_taichi
-from .errors import ConfigError, enum_value
+from ..backend import ensure_taichi
+from ..errors import ConfigError, enum_value
 from .hessian import HessianPattern, StepKernels
-from .newton import NewtonRecord, NewtonResult
+from .oracle import NewtonRecord, NewtonResult
 
 _WARNED = set()
 

@@ -14,22 +14,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cells import CORNERS, SURFACE_CELLS, linear_cell, split_cells
-from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, enum_value
+from .cells import CORNERS, SURFACE_CELLS, kuhn_tets, linear_cell, oriented_tets, signed_volumes, split_cells
+from ..errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, enum_value
 from .quality import SLIVER_RADIUS_RATIO, MeshQuality, degenerate_mask, mesh_quality, sliver_mask
 from .tetrahedralize import Mesher, tetwild_tets
+from .voxelize import tetrahedralize_surface
 
 SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
 
 # Outward faces of a positively oriented tet (v0, v1, v2, v3), det[v1-v0, v2-v0, v3-v0] > 0,
 # listed as local vertex triples in counter-clockwise order seen from outside.
 TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
-
-
-def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed tet volumes `det[x1-x0, x2-x0, x3-x0] / 6`; vertices (N,3), tets (M,4) -> (M,)."""
-    x = vertices[tets]
-    return np.linalg.det(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)) / 6.0
 
 
 def boundary_faces(tets: np.ndarray) -> np.ndarray:
@@ -217,28 +212,6 @@ def face_components(tets: np.ndarray) -> np.ndarray:
     return rank[labels]
 
 
-def kuhn_tets(cells: np.ndarray, node_dims) -> np.ndarray:
-    """Split hexahedral lattice cells into 6 tets each (Kuhn/Freudenthal split along the main diagonal).
-
-    cells: (C, 3) integer cell coordinates (i, j, k); node_dims: (nx+1, ny+1, nz+1) lattice nodes.
-    Every cell is cut the same way, so neighbouring cells share faces exactly (a conforming mesh).
-    Returns (6C, 4) node indices `(i * ny1 + j) * nz1 + k`, not yet oriented.
-    """
-    _, ny1, nz1 = node_dims
-    paths = []
-    for axes in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
-        corner = np.zeros(3, dtype=np.int64)
-        path = [corner.copy()]
-        for a in axes:
-            corner[a] += 1
-            path.append(corner.copy())
-        paths.append(path)
-    offsets = np.array(paths)                                  # (6, 4, 3)
-    nodes = cells[:, None, None, :] + offsets[None]            # (C, 6, 4, 3)
-    index = (nodes[..., 0] * ny1 + nodes[..., 1]) * nz1 + nodes[..., 2]
-    return index.reshape(-1, 4)
-
-
 def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> TetMesh:
     """A box of `size` metres starting at `origin`, with `cells` hexahedra per axis, 6 tets each."""
     size = np.asarray(size, dtype=np.float64)
@@ -276,14 +249,6 @@ def sliver_box_mesh(size=(0.2, 0.2, 0.2), cells=(4, 4, 4), jitter: float = 0.001
     return TetMesh(points, without_degenerate(points, tets))
 
 
-def oriented_tets(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Swap two vertices of every negatively oriented tet (used by generators, whose tets are valid)."""
-    tets = tets.copy()
-    neg = signed_volumes(vertices, tets) < 0
-    tets[neg] = tets[neg][:, [0, 1, 3, 2]]
-    return tets
-
-
 def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = None, repair: bool = False,
               mesher=Mesher.VOXELS, edge_length: float = None) -> TetMesh:
     """Read a volume mesh, or tetrahedralise a closed surface.
@@ -318,8 +283,6 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
         if mesher is Mesher.TETWILD:
             vertices, tets = tetwild_tets(vertices, faces, edge_length, name=path)
         else:
-            from .voxelize import tetrahedralize_surface
-
             vertices, tets = tetrahedralize_surface(vertices, faces, resolution, name=path)
         factor = 1.0
     else:

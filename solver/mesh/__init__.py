@@ -1,0 +1,11 @@
+"""Meshes: loading and validation (`tetmesh`), cell splitting (`cells`), quality (`quality`),
+tetrahedralisation of surfaces (`tetrahedralize`, `voxelize`), graph colouring (`coloring`) and the
+per-mesh derived data every solver reads (`topology`: incidence, Dm^-1, rest volumes).
+
+Lowest wing: it imports nothing from the other wings.
+"""
+from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
+from .quality import MeshQuality, det_F, inverted_count
+from .tetmesh import TetMesh, boundary_faces, box_mesh, load_mesh, save_mesh, sliver_box_mesh
+from .tetrahedralize import Mesher
+from .topology import Topology

@@ -1,0 +1,7 @@
+"""Global solvers: the numpy Newton oracle (`oracle`, the independent check), the Taichi Newton with a
+sparse direct solver (`direct`, `hessian`), Newton-PCG (`pcg`) and two-level VBD (`multilevel`,
+`prolongation`). They read the terms of G from the physics wing.
+"""
+from .direct import LinearSolver, fast_newton_solve
+from .oracle import NewtonResult, StepProblem, newton_solve
+from .pcg import Preconditioner, newton_pcg

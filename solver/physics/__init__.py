@@ -1,0 +1,8 @@
+"""The terms of G (lecture notes ch. 1): elasticity (`material`), ground contact and friction (`ground`).
+
+Each term is written once, as `ti.func`s with numpy twins; every solver (the VBD sweep, energy(),
+the Taichi Newton, the PCG products, the two-level coarse operator, the translation correction) calls
+these. Imports only the mesh wing and the root utilities.
+"""
+from .ground import Ground
+from .material import Material
