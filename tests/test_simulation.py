@@ -9,6 +9,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 H = 1 / 60
 
 
