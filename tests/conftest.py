@@ -1,8 +1,15 @@
-"""Shared test set-up: the Taichi backend of the run (``--arch``), float64, a private colouring cache.
+"""Shared test set-up: the Taichi backend of the run (``--arch``), float64, a private colouring cache,
+and the check that keeps the ``backend`` marker honest.
 
 ``pytest --arch gpu`` (or ``VBD_TEST_ARCH=gpu``) runs every test on CUDA; where there is no CUDA GPU
 they all skip with that reason. Taichi holds one backend per process, hence one option per run.
+
+A test whose result depends on the backend, because it launches Taichi kernels in this process, carries
+``@pytest.mark.backend`` (or its module sets ``pytestmark``); ``tests/test_backends.py`` re-runs exactly
+those on CUDA. Every kernel launch is counted, and a test that launched one without the marker fails
+and says so, so a new test cannot silently stay out of the CUDA run.
 """
+import functools
 import os
 import tempfile
 
@@ -31,6 +38,7 @@ def cuda_present() -> bool:
 
 
 def pytest_configure(config):
+    config.stash[KERNEL_LAUNCHES] = KernelLaunches()
     if config.option.arch is None:
         config.option.arch = os.environ.get("VBD_TEST_ARCH") or "cpu"
         if config.option.arch not in ARCHS:
@@ -51,3 +59,50 @@ def taichi_backend(arch):
     if arch == "gpu" and not _cuda_available():
         pytest.skip("--arch gpu: no CUDA GPU on this machine")
     solver.ensure_taichi(arch)
+
+
+
+class KernelLaunches:
+    """Counts the Taichi kernel launches of this process (``ti.kernel`` calls, Taichi's own field copies
+    such as ``to_numpy`` included), by wrapping the kernel class's call."""
+
+    def __init__(self):
+        from importlib import import_module
+
+        from solver._ti import NAME
+
+        kernel = import_module(f"{NAME}.lang.kernel_impl").Kernel
+        launch = kernel.__call__
+        self.count = 0
+
+        @functools.wraps(launch)
+        def counted(*args, **kwargs):
+            self.count += 1
+            return launch(*args, **kwargs)
+
+        kernel.__call__ = counted
+
+
+KERNEL_LAUNCHES = pytest.StashKey[KernelLaunches]()
+LAUNCHES_BEFORE = pytest.StashKey[int]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_setup(item):
+    item.stash[LAUNCHES_BEFORE] = item.config.stash[KERNEL_LAUNCHES].count
+    yield
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Fail a passing test that launched kernels (in its set-up or its body) without the backend marker."""
+    outcome = yield
+    report = outcome.get_result()
+    if call.when != "call" or not report.passed or item.get_closest_marker("backend"):
+        return
+    launched = item.config.stash[KERNEL_LAUNCHES].count - item.stash[LAUNCHES_BEFORE]
+    if launched:
+        report.outcome = "failed"
+        report.longrepr = (f"{item.nodeid} launched {launched} Taichi kernels but is not marked backend, so the "
+                           "CUDA run would leave it out: add @pytest.mark.backend (or pytestmark = "
+                           "pytest.mark.backend in its module)")

@@ -113,6 +113,7 @@ def solver_module():
     return solver
 
 
+@pytest.mark.backend
 def test_numpy_vbd_matches_taichi_sweep(solver_module):
     solver = solver_module
     from benchmarks.baselines import NumpyVBD
@@ -130,6 +131,7 @@ def test_numpy_vbd_matches_taichi_sweep(solver_module):
     assert np.abs(x_numpy - x_taichi).max() < 1e-12
 
 
+@pytest.mark.backend
 def test_jacobi_without_coloring_is_worse(solver_module):
     """Updating all vertices at once from the same old positions overshoots: plain Jacobi ends far
     from x*, where the coloured sweep converges."""
@@ -158,6 +160,7 @@ def stress_runner(solver_module):
     return Runner(RESOLUTIONS["coarse"], iterations=20, steps=3, recovery_rounds=5, recovery_iterations=200)
 
 
+@pytest.mark.backend
 @pytest.mark.parametrize("dt,E,nu,state", [
     (1 / 60, 1e4, 0.3, "rest"),
     (1 / 60, 1e4, 0.3, "noise"),
@@ -172,6 +175,7 @@ def test_stress_cell_stays_finite_and_monotone(stress_runner, dt, E, nu, state):
     assert out["monotone"], out["max_rise"]
 
 
+@pytest.mark.backend
 @pytest.mark.parametrize("state", ["rest", "noise", "inverted"])
 def test_stress_cell_recovers_rest_shape(stress_runner, state):
     out = stress_runner.cell(1 / 60, 1e4, 0.3, state)
@@ -246,6 +250,7 @@ def test_bad_benchmark_arguments_give_one_line_errors(capsys, name, argv, match)
     _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
 
 
+@pytest.mark.backend
 def test_render_speed_quick(tmp_path, capsys):
     _module("render_speed").main(["--quick", "--out", str(tmp_path)])
     data = rows(tmp_path / "render_speed.csv")

@@ -4,6 +4,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 
 @pytest.mark.parametrize("order", list(solver.VertexOrder))
 def test_coloring_is_valid_and_deterministic(order):

@@ -21,6 +21,7 @@ def one_line_error(capsys, argv, match):
     assert match in err, err
 
 
+@pytest.mark.backend
 @pytest.mark.slow
 def test_render_writes_frames_video_and_meshes(tmp_path, capsys):
     out = tmp_path / "sweep"
@@ -37,6 +38,7 @@ def test_render_writes_frames_video_and_meshes(tmp_path, capsys):
     assert main(argv + ["--overwrite"]) == 0
 
 
+@pytest.mark.backend
 def test_gif_and_surface_export(tmp_path):
     out = tmp_path / "g"
     assert main(["render", "twist", "--frames", "2", "--size", "48x32", "--out", str(out), "--video", "gif",
@@ -110,6 +112,7 @@ def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tm
     assert "[Taichi] version" not in rendered.stdout
 
 
+@pytest.mark.backend
 def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path, capsys):
     out = tmp_path / "t"
     argv = ["render", "twist", "--size", "48x32", "--video", "none", "--export", "obj", "--out", str(out)]
@@ -152,6 +155,7 @@ def test_ply_export_writes_32_bit_faces_without_warnings(tmp_path, capfd):
     np.testing.assert_array_equal(used[back.cells[0].data], faces)
 
 
+@pytest.mark.backend
 def test_duration_sets_the_number_of_frames(tmp_path, capsys):
     out = tmp_path / "c"
     assert main(["render", "colouring", "--duration", "1.5", "--fps", "2", "--size", "64x48", "--out", str(out),
@@ -163,6 +167,7 @@ def test_duration_sets_the_number_of_frames(tmp_path, capsys):
     one_line_error(capsys, ["render", "colouring", "--duration", "-1"], "duration in seconds")
 
 
+@pytest.mark.backend
 def test_one_frame_is_singular(tmp_path, capsys):
     out = tmp_path / "one"
     assert main(["render", "colouring", "--size", "64x48", "--out", str(out), "--video", "none"]) == 0

@@ -14,6 +14,8 @@ from demo import scenes
 from demo.errors import DemoError
 from demo.runner import PanelSettings, PanelSim
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 REPO = Path(__file__).resolve().parent.parent
 
 

@@ -9,6 +9,8 @@ from demo.render import Body, Camera, GridPlane, Renderer, Viewport
 from demo.runner import SceneRunner
 from demo import scenes
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 # row 0 of the background gradient (top colour blended 0.5/48 of the way towards the bottom colour)
 BACKGROUND_ROW0 = np.floor((np.array([0.93, 0.94, 0.96]) * (1 - 1 / 96) + np.array([0.78, 0.80, 0.84]) / 96) * 255 + 0.5)
 

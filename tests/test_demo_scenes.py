@@ -10,6 +10,8 @@ from demo import scenes
 from demo.errors import DemoError
 from demo.runner import SceneRunner
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 REPO = Path(__file__).resolve().parent.parent
 
 

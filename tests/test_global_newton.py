@@ -10,6 +10,8 @@ import solver
 from solver.newton.direct import DirectSolver, GlobalNewton, LinearSolver, fast_newton_solve, global_newton
 from solver.newton.hessian import HessianPattern, StepKernels
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 
 def _bar_with_ground():
     """A pinned bar pushed into the ground: contact active in the solution."""

@@ -11,6 +11,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 MATERIAL = solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
 STEPS = 6

@@ -8,6 +8,8 @@ import solver
 from solver.physics.material import (cofactor, d2psi_dF2_np, dpsi_dF, dpsi_dF_np, psi, psi_np,
                              vertex_force_hessian)
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 MAT = solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
 rng = np.random.default_rng(0)
 RANDOM_F = np.eye(3) + 0.3 * rng.standard_normal((20, 3, 3))

@@ -32,6 +32,15 @@ def test_boundary_faces_point_outward():
     assert (centroid * normals / 2).sum() / 3 == pytest.approx(1.0)
 
 
+def test_boundary_faces_takes_a_mesh_or_its_tets():
+    mesh = solver.box_mesh(cells=(2, 2, 1))
+    np.testing.assert_array_equal(solver.boundary_faces(mesh), mesh.boundary_faces())
+    np.testing.assert_array_equal(solver.boundary_faces(mesh.tets.tolist()), mesh.boundary_faces())
+    for bad in (mesh.vertices, mesh.tets[:, :3], 7):
+        with pytest.raises(solver.MeshError, match=r"needs a TetMesh or an \(M, 4\) integer array"):
+            solver.boundary_faces(bad)
+
+
 @pytest.mark.parametrize("suffix", [".msh", ".vtu", ".vtk", ".mesh"])
 def test_volume_formats_round_trip(tmp_path, suffix):
     mesh = solver.box_mesh(cells=(4, 2, 2))
@@ -128,6 +137,23 @@ def test_bad_files_raise_mesh_error_with_the_path(tmp_path):
         solver.load_mesh(tmp_path)
     with pytest.raises(solver.MeshError, match="resolution"):
         solver.load_mesh(_closed(tmp_path), resolution=0)
+
+
+def test_a_cell_naming_a_missing_point_is_a_mesh_error(tmp_path):
+    damaged = tmp_path / "damaged.vtk"             # legacy VTK: one tet, but only 4 points (0..3)
+    damaged.write_text("# vtk DataFile Version 2.0\ndamaged\nASCII\nDATASET UNSTRUCTURED_GRID\n"
+                       "POINTS 4 double\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n"
+                       "CELLS 1 5\n4 0 1 2 7\nCELL_TYPES 1\n10\n")
+    with pytest.raises(solver.MeshError, match=r"damaged.vtk: tetra cell 0 names point 7, but the file "
+                                               r"has 4 points \(0 to 3\)"):
+        solver.load_mesh(damaged)
+
+
+@pytest.mark.parametrize("call", [lambda mesh: solver.load_mesh(123), lambda mesh: solver.save_mesh(mesh, 123)],
+                         ids=["load_mesh", "save_mesh"])
+def test_a_path_that_is_not_a_path_is_a_config_error(tmp_path, call):
+    with pytest.raises(solver.ConfigError, match="path must be a str or pathlib.Path, got int 123"):
+        call(solver.box_mesh(cells=(1, 1, 1)))
 
 
 def _closed(tmp_path):

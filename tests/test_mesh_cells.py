@@ -79,15 +79,28 @@ def test_single_wedge_and_pyramid_keep_their_volume(tmp_path, kind, corners):
     assert (mesh.rest_volumes() > 0).all()
 
 
-@pytest.mark.parametrize("kind,nodes,suffix", [("tetra10", 10, ".vtu"), ("tetra35", 35, ".msh")])
-def test_higher_order_tets_keep_their_corners_with_a_note(tmp_path, kind, nodes, suffix):
+def _with_stand_ins(corners, nodes, first):
+    """Cells (C, nodes): the corner indices (C, k), then stand-in high-order nodes first, first+1, ..."""
+    high = np.repeat(first + np.arange(len(corners))[:, None], nodes - corners.shape[1], axis=1)
+    return np.hstack([corners, high])
+
+
+# Boundary cells as gmsh writes them beside the tets: (type, nodes, corners), same order as the tets.
+@pytest.mark.parametrize("kind,nodes,boundary,suffix", [
+    ("tetra10", 10, [("triangle6", 6, 3), ("line3", 3, 2)], ".vtu"),
+    ("tetra35", 35, [("triangle15", 15, 3), ("line5", 5, 2), ("vertex", 1, 1)], ".msh"),   # gmsh -order 4
+])
+def test_higher_order_tets_keep_their_corners_with_a_note(tmp_path, kind, nodes, boundary, suffix):
     box = solver.box_mesh(cells=(2, 1, 1))
-    extra = box.vertices[box.tets].mean(axis=1)                   # stand-ins for the high-order nodes
+    faces = box.boundary_faces()
+    extra = np.vstack([box.vertices[box.tets].mean(axis=1),        # stand-ins for the high-order nodes
+                       box.vertices[faces].mean(axis=1)])
     points = np.vstack([box.vertices, extra])
-    high = np.repeat(box.n_vertices + np.arange(box.n_tets)[:, None], nodes - 4, axis=1)
+    cells = [(kind, _with_stand_ins(box.tets, nodes, box.n_vertices))]
+    cells += [(low, _with_stand_ins(faces[:, :corners], low_nodes, box.n_vertices + box.n_tets))
+              for low, low_nodes, corners in boundary]                  # ignored by the loader
     path = tmp_path / f"p{suffix}"
-    meshio.write(path, meshio.Mesh(points, [(kind, np.hstack([box.tets, high]))]),
-                 **({"file_format": "gmsh22"} if suffix == ".msh" else {}))
+    meshio.write(path, meshio.Mesh(points, cells), **({"file_format": "gmsh22"} if suffix == ".msh" else {}))
     with pytest.warns(MeshWarning, match=f"corner nodes of {box.n_tets} higher-order cells \\({kind}\\)"):
         mesh = solver.load_mesh(path)
     np.testing.assert_allclose(mesh.vertices, box.vertices)
@@ -99,6 +112,10 @@ def test_messages_name_what_the_file_holds(tmp_path):
     meshio.write(tmp_path / "surface.vtk", meshio.Mesh(sphere.vertices, [("triangle", sphere.faces)]))
     with pytest.raises(solver.MeshError, match="only surface cells"):
         solver.load_mesh(tmp_path / "surface.vtk")
+    curved = np.hstack([sphere.faces, sphere.faces])                    # stand-in mid-edge nodes
+    meshio.write(tmp_path / "curved.vtu", meshio.Mesh(sphere.vertices, [("triangle6", curved)]))
+    with pytest.raises(solver.MeshError, match=r"only surface cells \(triangle6\)"):
+        solver.load_mesh(tmp_path / "curved.vtu")
     meshio.write(tmp_path / "lines.vtk", meshio.Mesh(sphere.vertices, [("line", sphere.edges[:10])]))
     with pytest.raises(solver.MeshError, match="no volume cells") as err:
         solver.load_mesh(tmp_path / "lines.vtk")

@@ -4,6 +4,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 MESH = solver.box_mesh(size=(0.5, 0.1, 0.1), cells=(10, 2, 2))
 FIXED = MESH.vertices[:, 0] < 1e-9
 

@@ -7,6 +7,8 @@ import solver
 from solver.newton.multilevel import CoarseOperator, CoarseRefresh, TwoLevelVBD
 from solver.newton.prolongation import cage_cells_for, cage_prolongation
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 STIFF = solver.Material(youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0)
 
 

@@ -4,6 +4,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 
 @pytest.fixture(scope="module")
 def problem():

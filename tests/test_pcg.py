@@ -6,6 +6,8 @@ import solver
 from solver.newton.hessian import StepKernels
 from solver.newton.pcg import NewtonPCG, Preconditioner, inverse_diagonal_blocks_kernel
 
+pytestmark = pytest.mark.backend  # launches Taichi kernels: re-run on CUDA
+
 
 @pytest.fixture(scope="module")
 def problem():

@@ -40,6 +40,7 @@ def test_the_sliver_bunny_warns_and_names_the_fix():
     assert mesh.quality().min_dihedral_degrees < 0.1
 
 
+@pytest.mark.backend
 def test_a_hung_bunny_stays_finite_and_uninverted():
     mesh = _load("bunny.vtu")
     top = mesh.vertices[:, 2] >= np.quantile(mesh.vertices[:, 2], 0.95)
@@ -53,6 +54,7 @@ def test_a_hung_bunny_stays_finite_and_uninverted():
     assert solver.inverted_count(mesh.vertices, mesh.tets, x) == 0
 
 
+@pytest.mark.backend
 def test_a_dropped_cow_lands_on_the_ground():
     mesh = _load("spot.vtu")
     lifted = solver.TetMesh(mesh.vertices + [0.0, 0.0, 0.03], mesh.tets)
@@ -68,6 +70,7 @@ def test_a_dropped_cow_lands_on_the_ground():
     assert sim.positions[:, 2].max() > 0.1     # a soft cow slumps on its legs but is not flattened
 
 
+@pytest.mark.backend
 def test_newton_converges_on_a_real_mesh_and_vbd_approaches_it():
     mesh = _load("bunny.vtu")
     top = mesh.vertices[:, 2] >= np.quantile(mesh.vertices[:, 2], 0.95)

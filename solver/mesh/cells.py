@@ -22,8 +22,12 @@ CELL_FACES = {
 }
 CORNERS = {"tetra": 4, "hexahedron": 8, "wedge": 6, "pyramid": 5}
 
-# Cell types that bound a volume but hold none: a file with only these is a surface mesh.
-SURFACE_CELLS = ("triangle", "triangle6", "triangle7", "quad", "quad8", "quad9", "polygon")
+# Cells of lower dimension than a volume, of any order (meshio's "triangle15", "quad9", "line3", ...,
+# and VTK's arbitrary-order Lagrange cells), by name without the node count. A volume file's boundary and
+# edge markers: ignored beside volume cells. Surface cells bound a volume but hold none: a file with only
+# these is a surface mesh.
+SURFACE_CELLS = ("triangle", "quad", "polygon", "VTK_LAGRANGE_TRIANGLE", "VTK_LAGRANGE_QUADRILATERAL")
+CURVE_CELLS = ("vertex", "line", "VTK_LAGRANGE_CURVE")
 
 
 def split_cells(kind: str, cells: np.ndarray) -> np.ndarray:
@@ -51,6 +55,16 @@ def split_cells(kind: str, cells: np.ndarray) -> np.ndarray:
         for tri in triangles:
             tets.append(np.column_stack([apex, tri])[keep])
     return np.concatenate(tets)
+
+
+def is_surface_cell(cell_type: str) -> bool:
+    """True for a meshio surface cell type of any order ("triangle", "triangle15", "quad9", ...)."""
+    return cell_type.rstrip("0123456789") in SURFACE_CELLS
+
+
+def is_lower_dimensional(cell_type: str) -> bool:
+    """True for a meshio cell type of dimension 0, 1 or 2, of any order ("vertex", "line3", "triangle15")."""
+    return is_surface_cell(cell_type) or cell_type.rstrip("0123456789") in CURVE_CELLS
 
 
 def linear_cell(cell_type: str):

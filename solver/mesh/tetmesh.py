@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .cells import CORNERS, SURFACE_CELLS, kuhn_tets, linear_cell, oriented_tets, signed_volumes, split_cells
+from .cells import (CORNERS, is_lower_dimensional, is_surface_cell, kuhn_tets, linear_cell, oriented_tets,
+                    signed_volumes, split_cells)
 from ..errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, enum_value
 from .quality import SLIVER_RADIUS_RATIO, MeshQuality, degenerate_mask, mesh_quality, sliver_mask
 from .tetrahedralize import Mesher, tetwild_tets
@@ -27,9 +28,14 @@ SURFACE_SUFFIXES = (".obj", ".stl", ".ply", ".off", ".glb", ".gltf")
 TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
 
 
-def boundary_faces(tets: np.ndarray) -> np.ndarray:
-    """(F, 3) int32 tet faces used by exactly one tet of (M, 4) positively oriented `tets`."""
-    faces = np.asarray(tets)[:, TET_FACES].reshape(-1, 3)
+def boundary_faces(tets) -> np.ndarray:
+    """(F, 3) int32 tet faces used by exactly one tet of `tets`: a `TetMesh`, or (M, 4) positively
+    oriented vertex indices."""
+    tets = tets.tets if isinstance(tets, TetMesh) else np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4 or not np.issubdtype(tets.dtype, np.integer):
+        raise MeshError(f"boundary_faces needs a TetMesh or an (M, 4) integer array of tets, got shape "
+                        f"{tets.shape} {tets.dtype}; pass mesh or mesh.tets")
+    faces = tets[:, TET_FACES].reshape(-1, 3)
     key = np.sort(faces, axis=1)
     _, first, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
     return faces[np.sort(first[counts == 1])].astype(np.int32)
@@ -255,8 +261,8 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
 
     Volume formats: anything meshio reads (.msh, .vtk, .vtu, .mesh, TetGen .node/.ele, ...), with
     tets, hexahedra, wedges and pyramids (split conformingly into tets, `solver.cells`) and their
-    higher-order versions (corner nodes kept, with a `MeshWarning`). Surface cells in a volume file
-    are ignored.
+    higher-order versions (corner nodes kept, with a `MeshWarning`). Lower-dimensional cells of any
+    order in a volume file (boundary triangles, edges, points: gmsh writes them) are ignored.
     Surface formats (.obj, .stl, .ply, .off, ...): read with trimesh and filled by `mesher`:
     `Mesher.VOXELS` (default, `resolution` cells along the longest side) or `Mesher.TETWILD`
     (optional pytetwild; `edge_length` in metres after scaling, default 1/20 of the diagonal).
@@ -266,7 +272,7 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
     repair: drop zero-volume tets and slivers (`TetMesh.without_slivers`) instead of failing or warning.
     A mesh that keeps slivers gets a one-line `MeshQualityWarning`.
     """
-    path = os.fspath(path)
+    path = _file_path(path)
     factor_of = _scale_rule(scale, fit)
     if not isinstance(repair, bool):
         raise ConfigError(f"repair must be True or False, got {repair!r}")
@@ -308,6 +314,15 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
     return mesh
 
 
+def _file_path(path) -> str:
+    """`path` (a str or os.PathLike) as a str, or a one-line `ConfigError`."""
+    try:
+        return os.fspath(path)
+    except TypeError:
+        raise ConfigError(f"a mesh file path must be a str or pathlib.Path, got {type(path).__name__} "
+                          f"{path!r}; pass the file's name, e.g. 'bar.msh'") from None
+
+
 def _scale_rule(scale, fit):
     """Check the `scale` / `fit` arguments; return a function (N, 3) points -> scale factor."""
     for name, value in (("scale", scale), ("fit", fit)):
@@ -343,18 +358,24 @@ def _read_volume(path):
         raise MeshError(f"{path}: cannot read this file ({reason}); use a format meshio reads, "
                         "e.g. .msh, .vtu, .vtk, .mesh or TetGen .node/.ele") from None
     kinds = sorted({c.type for c in raw.cells})
-    unknown = [k for k in kinds if linear_cell(k) is None and k not in SURFACE_CELLS
-               and not k.startswith(("line", "vertex"))]
+    unknown = [k for k in kinds if linear_cell(k) is None and not is_lower_dimensional(k)]
     if unknown:
         raise MeshError(f"{path}: has cells of type {', '.join(unknown)} that cannot be split into tets; "
                         "convert them to tetrahedra, hexahedra, wedges or pyramids")
     blocks = [(c.type, c.data) for c in raw.cells if linear_cell(c.type) is not None and len(c.data)]
     if not blocks:
-        if any(k in SURFACE_CELLS for k in kinds):
+        if any(is_surface_cell(k) for k in kinds):
             raise MeshError(f"{path}: contains only surface cells ({', '.join(kinds)}), no volume; "
                             "a surface mesh must be tetrahedralised first: save it as .obj/.stl/.off and load that")
         raise MeshError(f"{path}: contains no volume cells (cell types: {', '.join(kinds) or 'none'}); "
                         "give a mesh of tetrahedra, hexahedra, wedges or pyramids")
+    n_points = len(raw.points)
+    for kind, data in blocks:
+        missing = (data < 0) | (data >= n_points)
+        if missing.any():
+            cell, node = np.argwhere(missing)[0]
+            raise MeshError(f"{path}: {kind} cell {cell} names point {data[cell, node]}, but the file has "
+                            f"{n_points} points (0 to {n_points - 1}); the file is damaged: export it again")
     higher = sorted({k for k, _ in blocks if k not in CORNERS})
     if higher:
         count = sum(len(d) for k, d in blocks if k not in CORNERS)
@@ -391,7 +412,7 @@ def save_mesh(mesh, path, point_data: dict | None = None) -> None:
     import meshio
 
     vertices, tets = (mesh.vertices, mesh.tets) if isinstance(mesh, TetMesh) else mesh
-    path = os.fspath(path)
+    path = _file_path(path)
     if path.lower().endswith(SURFACE_SUFFIXES):
         cells = [("triangle", boundary_faces(tets))]
     else:

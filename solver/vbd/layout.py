@@ -4,6 +4,14 @@ Every kernel of the solver is a module-level `ti.kernel` taking `ti.types.ndarra
 is compiled once per process and shared by every `Simulation`; a kernel launch passes a handful of
 arrays, so the per-vertex 3-vectors live as rows of one (STATE_ROWS, N) array of 3-vectors and the
 scalar settings as one (PARAM_COUNT,) array.
+
+Why the kernels list their arrays one by one instead of taking one argument pack: Taichi 1.7.4's
+`ti.types.argpack` does hold ndarrays on the CPU (same results, one compile per dtype), but launching
+costs more: nine ndarrays in one pack 67 us a launch, as nine arguments 54 us; one ndarray 22 against
+18 us (CPU time, interleaved runs on a loaded 2-core machine, 2026-11-24). And Quadrants has no argument
+packs (it takes Python dataclasses of ndarrays, which Taichi 1.7.4 refuses), so no grouped signature
+runs on both. The settings are an ndarray, not a `ti.types.struct`: a kernel taking an ndarray and 13
+floats costs 140 us a launch with the floats as a struct, 22 us with them as a second ndarray.
 """
 from .._ti import ti
 

@@ -1,0 +1,55 @@
+"""tools/mark_slow.py: reading a full run's durations and advising which tests carry the slow marker."""
+import pytest
+
+from tools import mark_slow
+
+DURATIONS = """
+============================= slowest durations ==============================
+6.50s call     tests/test_a.py::test_slow_unmarked
+3.00s setup    tests/test_a.py::test_fixture_heavy
+2.50s call     tests/test_a.py::test_fixture_heavy
+0.80s call     tests/test_b.py::test_fast_marked[x-1]
+0.01s teardown tests/test_b.py::test_fast_marked[x-1]
+9.00s call     tests/test_b.py::TestGroup::test_slow_marked
+0.20s call     tests/test_b.py::test_fast
+===== 5 passed in 22.01s =====
+"""
+
+JUNIT = """<?xml version="1.0" encoding="utf-8"?><testsuites><testsuite name="pytest">
+<testcase classname="tests.test_a" name="test_slow_unmarked" time="6.5"/>
+<testcase classname="tests.test_a" name="test_fixture_heavy" time="5.5"/>
+<testcase classname="tests.test_b" name="test_fast_marked[x-1]" time="0.81"/>
+<testcase classname="tests.test_b.TestGroup" name="test_slow_marked" time="9.0"/>
+<testcase classname="tests.test_b" name="test_fast" time="0.2"/>
+<testcase classname="tests.test_b" name="test_skipped_on_cpu" time="0.01"><skipped message="no GPU"/></testcase>
+</testsuite></testsuites>"""
+
+MARKED = {"tests/test_b.py::test_fast_marked[x-1]", "tests/test_b.py::TestGroup::test_slow_marked",
+          "tests/test_b.py::test_skipped_on_cpu", "tests/test_c.py::test_not_in_this_run"}
+
+
+@pytest.mark.parametrize("reader, text", [(mark_slow.durations_from_text, DURATIONS),
+                                          (mark_slow.durations_from_junit, JUNIT)], ids=["durations", "junit"])
+def test_advice_marks_tests_over_the_threshold_and_unmarks_the_rest(reader, text):
+    seconds, skipped = reader(text)
+    assert seconds["tests/test_a.py::test_fixture_heavy"] == pytest.approx(5.5)     # set-up + call
+    advice = mark_slow.advise(seconds, skipped, MARKED, threshold=5.0)
+    assert [n for _, n in advice.to_mark] == ["tests/test_a.py::test_slow_unmarked",
+                                              "tests/test_a.py::test_fixture_heavy"]
+    assert [n for _, n in advice.to_unmark] == ["tests/test_b.py::test_fast_marked[x-1]"]
+    # a skipped or unmeasured test keeps its marker: this run says nothing about it
+    assert advice.unjudged == sorted(MARKED - set(seconds) | skipped)
+    assert advice.fast_subset_s == pytest.approx(0.81 + 0.2)           # the skipped test stays slow
+
+
+@pytest.mark.parametrize("content, match", [
+    ("collected 3 items\n3 passed in 1.0s\n", "no duration lines"),
+    ("<testsuites><testsuite/></testsuites>", "lists no test cases"),
+    ("<testsuites><testcase", "not a readable junit xml file"),
+])
+def test_unreadable_results_end_in_one_line(tmp_path, capsys, content, match):
+    results = tmp_path / "results.txt"
+    results.write_text(content)
+    assert mark_slow.main([str(results)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and match in err
