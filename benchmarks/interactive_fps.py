@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (init_taichi, output_folder, parser, positive, provenance, table, write_csv)
+from benchmarks.common import (print_written, init_taichi, output_folder, parser, positive, provenance, table, write_csv)
 
 OUTPUTS = ("interactive_fps.csv", "summary.md")
 COLUMNS = ["scene", "panels", "ghosts", "frames", "median_frame_ms", "frames_per_second", "first_build_s",
@@ -60,6 +60,7 @@ def main(argv=None):
     rows = [measure(name, frames, ghosts) for name in scene_names for ghosts in (False, True)]
     text = table(rows, COLUMNS, title="Interactive loop, simulation only (rendering excluded)")
     print(text)
+    print_written(args, OUTPUTS)
     write_csv(f"{out}/interactive_fps.csv", rows, COLUMNS)
     with open(f"{out}/summary.md", "w") as fh:
         fh.write(f"{provenance()}\n\n{text}\n")

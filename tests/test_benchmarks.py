@@ -251,4 +251,15 @@ def test_render_speed_quick(tmp_path, capsys):
     data = rows(tmp_path / "render_speed.csv")
     assert len(data) == 3 and all(float(r["render_ms"]) > 0 for r in data)
     assert (tmp_path / "render_speed_frame.png").stat().st_size > 0
-    assert "[Taichi]" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "[Taichi]" not in out
+    assert out.strip().splitlines()[-1] == f"wrote render_speed.csv, render_speed_frame.png into {tmp_path}"
+
+
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+def test_help_names_the_command(capsys, name):
+    module = _module(name)
+    with pytest.raises(SystemExit) as stop:
+        module.main(["--help"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: python -m benchmarks.{name} ")
