@@ -227,6 +227,10 @@ def section_sweeps(out, full, size):
 
 
 def section_convergence(out, full, size):
+    import numpy as np
+
+    import solver
+
     plt = _pyplot()
     meshes = [(20, 2, 2), (40, 4, 4)] + ([(80, 8, 8)] if full else [])
     results = {}
@@ -256,10 +260,19 @@ def section_convergence(out, full, size):
             numbers[f"convergence.{cells[0]}.E{E:.0e}.k{k}".replace("+0", "")] = _sci(by_k[k][2])
         numbers[f"convergence.{cells[0]}.E{E:.0e}.ms_per_iteration".replace("+0", "")] = \
             f"{1000 * by_k[1000][1] / 1000:.2f}"
+    # how many sweeps per decade of error the stiff bars need, against ln(10) N_c^2 (chapters 5 and 7)
+    from solver.method import wave_cells
 
-    # run time against error: VBD (40x4x4) and the global Newton reference on the same step
-    import solver
+    for cells in meshes:
+        key = f"convergence.{cells[0]}.E1e6"
+        tets, rows_ = results[cells, 1e6]
+        by_k = {r[0]: r[2] for r in rows_}
+        n_c = wave_cells(solver.box_mesh(cells=cells, **BAR), _material(1e6), 1 / 60)
+        numbers[f"{key}.N_c"] = f"{n_c:.0f}"
+        numbers[f"{key}.predicted_sweeps_per_decade"] = f"{np.log(10) * n_c ** 2:.0f}"
+        numbers[f"{key}.measured_sweeps_per_decade"] = f"{900 / np.log10(by_k[100] / by_k[1000]):.0f}"
 
+    # run time against error: VBD (40x4x4) against the Taichi Newton and the numpy Newton on the same step
     fig, ax = plt.subplots()
     timing_rows = []
     for E in (1e4, 1e6):
@@ -269,25 +282,34 @@ def section_convergence(out, full, size):
         sim = _bar_sim((40, 4, 4), E)
         problem = sim.step_problem()
         x_n = sim.positions
-        x_star = sim.newton_reference()
-        result = solver.newton_solve(problem, problem.y_with_constraints(), 1e-10, 50, keep_iterates=True)
-        seconds = [h.seconds for h in result.history[1:]]
-        errs = [max(solver.relative_error(x, x_star, x_n), 1e-16) for x in result.iterates]
-        ax.loglog(seconds, errs, styles[E], marker="s", color="k", label=f"global Newton, E = {_E(E)} Pa")
+        x_star = sim.newton_reference()      # also compiles the Taichi Newton's kernels before it is timed
+        fast = solver.fast_newton_solve(problem, problem.y_with_constraints(), 1e-10, 50, keep_iterates=True)
+        oracle = solver.newton_solve(problem, problem.y_with_constraints(), 1e-10, 50)
+        seconds = [h.seconds for h in fast.history[1:]]
+        errs = [max(solver.relative_error(x, x_star, x_n), 1e-16) for x in fast.iterates]
+        ax.loglog(seconds, errs, styles[E], marker="s", color="k", label=f"Taichi Newton, E = {_E(E)} Pa")
         vbd_1e2 = next((r[1] for r in rows_ if r[2] <= 1e-2), None)
         vbd_1e6 = next((r[1] for r in rows_ if r[2] <= 1e-6), None)
+        newton_1e2 = next(t for t, e in zip(seconds, errs) if e <= 1e-2)
         timing_rows.append([f"{_E(E)} Pa", f"{1000 * rows_[CHECKPOINTS.index(100)][1] / 100:.2f} ms",
-                            "not in 1000 it." if vbd_1e2 is None else f"{vbd_1e2:.3f} s",
-                            "not in 1000 it." if vbd_1e6 is None else f"{vbd_1e6:.3f} s",
-                            f"{result.iterations}", f"{seconds[-1]:.2f} s"])
+                            "not in 1000 it." if vbd_1e2 is None else f"{1000 * vbd_1e2:.1f} ms",
+                            "not in 1000 it." if vbd_1e6 is None else f"{1000 * vbd_1e6:.1f} ms",
+                            f"{1000 * newton_1e2:.1f} ms", f"{fast.iterations}, {1000 * seconds[-1]:.1f} ms",
+                            f"{oracle.iterations}, {1000 * oracle.history[-1].seconds:.0f} ms"])
+        key = f"convergence.E{E:.0e}".replace("+0", "")
+        numbers[f"{key}.newton_ms"] = f"{1000 * seconds[-1]:.1f}"
+        numbers[f"{key}.numpy_newton_ms"] = f"{1000 * oracle.history[-1].seconds:.0f}"
+        numbers[f"{key}.vbd_1e-2_ms"] = "-" if vbd_1e2 is None else f"{1000 * vbd_1e2:.1f}"
+        numbers[f"{key}.vbd_1e-2_fraction"] = "-" if vbd_1e2 is None else f"{vbd_1e2 / seconds[-1]:.2f}"
     ax.set_xlabel("solver wall time in the step (s, this machine)")
     ax.set_ylabel("relative error")
     ax.set_title(f"Run time against error, bar 40x4x4 cells ({results[(40, 4, 4), 1e4][0]:,} tets), 1 step")
     ax.legend(fontsize=7)
     _save_plot(fig, out / "time_vs_error.png")
     numbers["convergence.timing.table"] = _table(
-        ["material", "VBD time per iteration", "VBD time to error 1e-2", "VBD time to error 1e-6",
-         "Newton iterations", "Newton time"], timing_rows) + (
+        ["material", "VBD time per iteration", "VBD to error 1e-2", "VBD to error 1e-6",
+         "Taichi Newton to error 1e-2", "Taichi Newton: iterations, whole solve",
+         "numpy Newton: iterations, whole solve"], timing_rows) + (
         f"\n\n*Measured by `python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
         f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
         "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
@@ -320,7 +342,7 @@ def section_propagation(out, full, size):
     for k in range(1, 41):
         sim.run_iterations(1)
         moved = np.linalg.norm(sim.positions - rest, axis=1)
-        reached = layer[(moved > 1e-12) & sim.free_mask]
+        reached = layer[(moved > scene.color_range[0]) & sim.free_mask]    # the pictures' threshold
         fronts.append(cells - int(reached.min()) if len(reached) else 0)
         if k in (1, 2, 5, 10, 20, 40):
             profiles[k] = np.array([moved[layer == c].max() for c in range(cells + 1)])
@@ -334,6 +356,7 @@ def section_propagation(out, full, size):
     a.semilogy(xs, exact, "k--", label="Newton x*")
     a.set_xlabel("position along the bar (m); the right end was moved")
     a.set_ylabel("distance moved (m, log)")
+    a.axhline(scene.color_range[0], color="gray", lw=0.8)
     a.set_ylim(1e-16, 0.1)
     a.legend(fontsize=7)
     ks = np.arange(1, len(fronts) + 1)
@@ -348,6 +371,7 @@ def section_propagation(out, full, size):
     return {"propagation.front.table": _table(["iterations", *[str(k) for k in (1, 2, 3, 5, 10, 20)]],
                                               [["cell layers reached", *[str(fronts[k - 1]) for k in (1, 2, 3, 5, 10, 20)]]]),
             "propagation.rate": f"{rate:.2f}", "propagation.cells": str(cells),
+            "propagation.threshold": _sci(scene.color_range[0], 1),
             "propagation.full_at": str(next((k for k, f in zip(ks, fronts) if f >= cells - 1), "more than 40"))}
 
 
@@ -436,11 +460,74 @@ def section_remedy(out, full, size):
     return numbers
 
 
+def _short(value):
+    """A residual for prose: 26, 0.28, 5.2e-5."""
+    return f"{value:.2g}" if value >= 0.01 else _sci(value)
+
+
+def section_newton(out, full, size):
+    """Chapter 2: the largest force |dG/dx_i| after each Newton iteration on the stiff 1,920-tet bar, one
+    step from rest, for projected Newton (the numpy oracle) and the Taichi Newton (eigenvalue filtering
+    and chord steps). Numbers only, no figure."""
+    import solver
+
+    sim = _bar_sim((20, 4, 4), 1e6)
+    problem = sim.step_problem()
+    x0 = problem.y_with_constraints()
+    projected = solver.newton_solve(problem, x0, 1e-10, 50)
+    filtered = solver.fast_newton_solve(problem, x0, 1e-10, 50)
+    numbers = {"newton.tets": f"{sim.mesh.n_tets:,}"}
+    for name, result in (("projected", projected), ("filtered", filtered)):
+        numbers[f"newton.{name}.residuals"] = ", ".join(_short(h.max_gradient) for h in result.history)
+        numbers[f"newton.{name}.iterations"] = str(result.iterations)
+    return numbers
+
+
+def section_jacobi(out, full, size):
+    """Chapter 4: the same per-vertex update without colours (Jacobi: every vertex from the old positions
+    at once, `benchmarks/baselines.py`), plain and under-relaxed, against the coloured VBD sweep."""
+    import solver
+    from benchmarks.baselines import JacobiSweep
+
+    plt = _pyplot()
+    checkpoints = CHECKPOINTS[:14]
+    fig, ax = plt.subplots()
+    rows = []
+    for E in (1e4, 1e6):
+        sim = _bar_sim((40, 4, 4), E)
+        x_n, x_star = sim.positions, sim.newton_reference()
+        curves = {"coloured Gauss-Seidel (VBD)": _convergence(sim, checkpoints, x_star)}
+        sim.reset()
+        for omega in (1.0, 0.5):
+            jacobi = JacobiSweep(sim, omega)
+            sim.begin_step()
+            curve, done = [], 0
+            for k in checkpoints:
+                jacobi.iterate(k - done)
+                done = k
+                curve.append((k, 0.0, solver.relative_error(sim.positions, x_star, x_n)))
+            sim.reset()     # a diverged Jacobi step is dropped, not ended
+            curves[f"Jacobi, omega = {omega}"] = curve
+        for (label, curve), style in zip(curves.items(), ("-", "--", ":")):
+            ax.loglog([r[0] for r in curve], [r[2] for r in curve], style, marker=".",
+                      label=f"{label}, E = {_E(E)} Pa")
+        rows += [[f"{_E(E)} Pa", label, *[_sci(dict((r[0], r[2]) for r in curve)[k]) for k in (10, 100, 200)]]
+                 for label, curve in curves.items()]
+    ax.set_xlabel("iterations in the step")
+    ax.set_ylabel("relative error")
+    ax.set_title("Without colours: Jacobi against coloured VBD, bar 40x4x4 cells, one step from rest")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "jacobi.png")
+    return {"jacobi.table": _table(["E", "update order", *[f"error after {k} it." for k in (10, 100, 200)]], rows)}
+
+
 REMEDY_FRAME = 15      # t = 0.27 s: the plain VBD bar has sagged well below its ghost
 
 
 SECTIONS = {
     "colouring": section_coloring,
+    "jacobi": section_jacobi,
+    "newton": section_newton,
     "sweeps": section_sweeps,
     "convergence": section_convergence,
     "propagation": section_propagation,
