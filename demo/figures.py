@@ -310,7 +310,7 @@ def section_convergence(out, full, size):
         ["material", "VBD time per iteration", "VBD to error 1e-2", "VBD to error 1e-6",
          "Taichi Newton to error 1e-2", "Taichi Newton: iterations, whole solve",
          "numpy Newton: iterations, whole solve"], timing_rows) + (
-        f"\n\n*Measured by `python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
+        f"\n\n*Measured by `.venv/bin/python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
         f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
         "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
     return numbers

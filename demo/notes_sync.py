@@ -34,6 +34,7 @@ import csv
 import hashlib
 import io
 import json
+import os
 import re
 import textwrap
 import tokenize
@@ -52,7 +53,7 @@ DEPENDENCIES = ("solver/**/*.py", "demo/scenes.py", "demo/runner.py", "demo/comp
 GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
 INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
 EXCERPT = re.compile(r"(<!-- excerpt: (?P<path>\S+) (?P<name>[\w.]+) -->\n```python\n)(?P<body>.*?)(\n```)", re.S)
-RESULT = re.compile(r"(<!--n:(?P<spec>[^>]*?)-->)(?P<body>.*?)(<!--/n-->)", re.S)
+RESULT = re.compile(r"(<!--n:(?P<spec>[^>\n]*?)-->)(?P<body>.*?)(<!--/n-->)")
 INCLUDE = re.compile(r"(<!-- begin include: (?P<path>\S+) -->\n)(?P<body>.*?)(\n<!-- end include -->)", re.S)
 SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
 
@@ -132,8 +133,23 @@ def result_value(spec: str, root: Path = REPO_ROOT) -> str:
         raise ResultError(f"{path}: {column} = {raw!r} cannot be written with format {fmt!r}") from None
 
 
-def fill_generated(text: str, numbers: dict, root: Path = REPO_ROOT) -> str:
-    """Replace every generated block, inline value, results number and include whose source is known."""
+def included_text(path: str, folder: Path, root: Path = REPO_ROOT) -> str:
+    """The text of results file `path` (relative to `root`) as it appears in a document in `folder`:
+    its relative links and images rebased so that they still point at the files beside it."""
+    source = root / path
+
+    def rebase(match):
+        target = match["target"]
+        if re.match(r"[a-z]+:|/|#", target):
+            return match.group(0)
+        return f"]({os.path.relpath(source.parent / target, folder)})"
+
+    return re.sub(r"\]\((?P<target>[^)\s]+)\)", rebase, source.read_text(encoding="utf-8").strip())
+
+
+def fill_generated(text: str, numbers: dict, root: Path = REPO_ROOT, folder: Path = NOTES) -> str:
+    """Replace every generated block, inline value, results number and include whose source is known;
+    `folder` is where the document lies (for the links of included files)."""
     def from_numbers(match):
         key = match["key"]
         return match.group(1) + numbers[key] + match.group(4) if key in numbers else match.group(0)
@@ -145,9 +161,9 @@ def fill_generated(text: str, numbers: dict, root: Path = REPO_ROOT) -> str:
             return match.group(0)
 
     def include(match):
-        path = root / match["path"]
-        return match.group(1) + path.read_text(encoding="utf-8").strip() + match.group(4) if path.is_file() \
-            else match.group(0)
+        if not (root / match["path"]).is_file():
+            return match.group(0)
+        return match.group(1) + included_text(match["path"], folder, root) + match.group(4)
 
     text = INLINE.sub(from_numbers, GENERATED.sub(from_numbers, text))
     return INCLUDE.sub(include, RESULT.sub(from_results, text))
@@ -176,7 +192,7 @@ def update_notes(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> 
     changed = []
     for path in documents(notes):
         text = path.read_text(encoding="utf-8")
-        new = refresh_excerpts(fill_generated(text, numbers, root), root)
+        new = refresh_excerpts(fill_generated(text, numbers, root, path.parent), root)
         if new != text:
             path.write_text(new, encoding="utf-8")
             changed.append(path)
@@ -206,7 +222,7 @@ def stale(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
             source = root / match["path"]
             if not source.is_file():
                 problems.append(f"{name}: included results file {match['path']} does not exist")
-            elif source.read_text(encoding="utf-8").strip() != match["body"]:
+            elif included_text(match["path"], path.parent, root) != match["body"]:
                 problems.append(f"{name}: the copy of {match['path']} differs from the file; "
                                 f"run python -m demo figures --only excerpts")
         for match in EXCERPT.finditer(text):

@@ -102,7 +102,7 @@ def _results_project(tmp_path):
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "runs.csv").write_text('case,method,seconds\n"bar, rest",VBD,0.01234\n'
                                                    '"bar, rest",Newton,0.5\n"bar, moving",VBD,0.02\n')
-    (tmp_path / "results" / "summary.md").write_text("| a |\n|---|\n| 1 |\n")
+    (tmp_path / "results" / "summary.md").write_text("| a |\n|---|\n| 1 |\n\n![plot](plot.png) [web](https://x.org)\n")
     notes = tmp_path / "notes"
     notes.mkdir()
     chapter = notes / "01-x.md"
@@ -120,7 +120,9 @@ def test_numbers_from_results_files_are_checked_and_filled(tmp_path):
     assert any("copy of results/summary.md differs" in p for p in problems)
     notes_sync.update_notes({}, notes, root=tmp_path)
     text = chapter.read_text()
-    assert "-->12.3<!--/n--> ms" in text and "-->5.0e-1<!--/n--> s" in text and "\n| 1 |\n<!-- end include -->" in text
+    assert "-->12.3<!--/n--> ms" in text and "-->5.0e-1<!--/n--> s" in text
+    # the included file's relative links still point at the files beside it
+    assert "| 1 |\n\n![plot](../results/plot.png) [web](https://x.org)\n<!-- end include -->" in text
     assert notes_sync.stale({}, notes, root=tmp_path) == []
     # a new measurement makes the quoted number stale
     path = tmp_path / "results" / "runs.csv"
