@@ -263,3 +263,13 @@ def test_help_names_the_command(capsys, name):
         module.main(["--help"])
     assert stop.value.code == 0
     assert capsys.readouterr().out.startswith(f"usage: python -m benchmarks.{name} ")
+
+
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+def test_the_readme_says_what_each_benchmark_writes(name):
+    module = _module(name)
+    files = getattr(module, "OUTPUTS", None) or module.FILES
+    with open(os.path.join(ROOT, "benchmarks", "README.md")) as fh:
+        row = next(line for line in fh if line.startswith(f"| `.venv/bin/python -m benchmarks.{name}` |"))
+    written = row.rstrip().rstrip("|").rsplit("|", 1)[1]
+    assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
