@@ -1,6 +1,6 @@
 """Every figure, table and number of the lecture notes: ``python -m demo figures``.
 
-    python -m demo figures                   # all sections, about 2-3 minutes on 2 CPU cores
+    python -m demo figures                   # all sections (a few minutes)
     python -m demo figures --only sweeps     # one section (names: --list)
     python -m demo figures --check           # change nothing; fail if the notes or READMEs are out of date
     python -m demo figures --full            # also the 31k-tet meshes (slow: its Newton steps)
