@@ -60,10 +60,10 @@ def main(argv=None):
     rows = [measure(name, frames, ghosts) for name in scene_names for ghosts in (False, True)]
     text = table(rows, COLUMNS, title="Interactive loop, simulation only (rendering excluded)")
     print(text)
-    print_written(args, OUTPUTS)
     write_csv(f"{out}/interactive_fps.csv", rows, COLUMNS)
     with open(f"{out}/summary.md", "w") as fh:
         fh.write(f"{provenance()}\n\n{text}\n")
+    print_written(args, OUTPUTS)
     return 0
 
 

@@ -17,6 +17,8 @@ def run_quick(module, out):
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "|" in proc.stdout            # the printed summary table
+    files = _module(module).OUTPUTS
+    assert proc.stdout.strip().splitlines()[-1] == f"wrote {', '.join(files)} into {out}"   # what it wrote, last
     return proc.stdout
 
 
@@ -273,3 +275,11 @@ def test_the_readme_says_what_each_benchmark_writes(name):
         row = next(line for line in fh if line.startswith(f"| `.venv/bin/python -m benchmarks.{name}` |"))
     written = row.rstrip().rstrip("|").rsplit("|", 1)[1]
     assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
+
+
+@pytest.mark.slow
+def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
+    assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == \
+        f"wrote interactive_fps.csv, summary.md into {tmp_path}"
+    assert len(rows(tmp_path / "interactive_fps.csv")) == 2
