@@ -240,3 +240,11 @@ def test_excerpts_show_no_solution_markers():
     for path in notes_sync.chapters():
         for match in notes_sync.EXCERPT.finditer(path.read_text()):
             assert "SOLUTION" not in match["body"], f"{path.name}: {match['name']}"
+
+
+def test_documented_commands_use_the_venv_python():
+    """After the quick start only .venv/bin/python has Taichi: a bare `python -m ...` gives an ImportError."""
+    for path in notes_sync.documents(NOTES):
+        text = notes_sync.INCLUDE.sub("", path.read_text())      # included results record how they were run
+        bare = re.findall(r"(?:^|[`\s(])python3? -m (?!venv\b)[\w.]+", text, flags=re.M)
+        assert not bare, f"{path.name}: {bare[:3]}"
