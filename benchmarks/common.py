@@ -39,7 +39,8 @@ def parser(description: str, default_out: str) -> argparse.ArgumentParser:
     Call ``output_folder(args, files)`` after parsing: full runs write into ``default_out`` (the committed
     results), --quick runs into a new scratch folder, and existing files are replaced only with --overwrite.
     """
-    p = _Parser(description=description, formatter_class=HelpFormatter)
+    name = os.path.basename(os.path.normpath(default_out))
+    p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=HelpFormatter)
     p.set_defaults(results_folder=default_out)
     p.add_argument("--out", default=None, help=f"folder for the CSV and PNG files (default: {default_out}; with "
                                                  "--quick a new scratch folder in the system's temporary folder)")
@@ -72,6 +73,12 @@ def output_folder(args, files) -> str:
         fail(f"{os.path.join(args.out, existing[0])}{more} already exist; pass --overwrite to replace them "
              "or --out to choose another folder")
     return args.out
+
+
+def print_written(args, files) -> None:
+    """Say, as the command's last line, which of `files` it wrote into ``args.out``."""
+    written = [f for f in files if os.path.exists(os.path.join(args.out, f))]
+    print(f"wrote {', '.join(written)} into {args.out}")
 
 
 def positive(kind):

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (init_taichi, output_folder, parser, positive, provenance, table, write_csv)
+from benchmarks.common import (print_written, init_taichi, output_folder, parser, positive, provenance, table, write_csv)
 
 OUTPUTS = ("interactive_fps.csv", "summary.md")
 COLUMNS = ["scene", "panels", "ghosts", "frames", "median_frame_ms", "frames_per_second", "first_build_s",
@@ -63,6 +63,7 @@ def main(argv=None):
     write_csv(f"{out}/interactive_fps.csv", rows, COLUMNS)
     with open(f"{out}/summary.md", "w") as fh:
         fh.write(f"{provenance()}\n\n{text}\n")
+    print_written(args, OUTPUTS)
     return 0
 
 

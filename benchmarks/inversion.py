@@ -21,7 +21,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import ROOT, init_taichi, output_folder, parser, progress, provenance, table, write_csv
+from benchmarks.common import print_written, ROOT, init_taichi, output_folder, parser, progress, provenance, table, write_csv
 
 MESHES = ("bunny", "bunny_slivers", "bunny_slivers_repaired", "sliver_box")
 COLUMNS = ["mesh", "tets", "slivers", "method", "step", "time", "inverted", "min_det_F", "inverted_at_y",
@@ -155,6 +155,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "inversion.md"), "w") as fh:
         fh.write(text + "\n\n" + provenance(sys.argv if argv is None else ["inversion.py"] + list(argv)) + "\n")
     print(text)
+    print_written(args, OUTPUTS)
     return 0
 
 

@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (init_taichi, output_folder, parser, progress, provenance, table, time_to_reach,
+from benchmarks.common import (print_written, init_taichi, output_folder, parser, progress, provenance, table, time_to_reach,
                                write_csv)
 
 FILES = ("multilevel.csv", "multilevel_summary.csv", "multilevel.png", "summary.md")
@@ -191,6 +191,7 @@ def main(argv=None):
     with open(os.path.join(args.out, FILES[3]), "w") as fh:
         fh.write(text)
     print(text)
+    print_written(args, FILES)
     return 0
 
 

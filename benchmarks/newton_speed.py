@@ -22,7 +22,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (format_seconds, init_taichi, output_folder, parser, provenance, table, time_to_reach,
+from benchmarks.common import (print_written, format_seconds, init_taichi, output_folder, parser, provenance, table, time_to_reach,
                                write_csv)
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
@@ -221,6 +221,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)
+    print_written(args, FILES)
     return 0
 
 

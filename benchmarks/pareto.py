@@ -27,7 +27,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (Timer, format_seconds, init_taichi, output_folder, parser, positive, progress,
+from benchmarks.common import (print_written, Timer, format_seconds, init_taichi, output_folder, parser, positive, progress,
                                provenance, seconds_per_call, spectral_radius, table, time_to_reach, write_csv)
 from solver.errors import VBDError
 
@@ -323,6 +323,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)
+    print_written(args, OUTPUTS)
     return rows, summary
 
 

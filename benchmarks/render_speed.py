@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import output_folder, parser, positive, progress
+from benchmarks.common import print_written, output_folder, parser, positive, progress
 
 OUTPUTS = ("render_speed.csv", "render_speed_frame.png")
 
@@ -105,7 +105,8 @@ def main(argv=None):
     png_ms = np.median([r[4] for r in rows])
     print(f"{width}x{height}, {len(faces)} triangles (+ ghost), arch={args.arch}: median {render_ms:.1f} ms per "
           f"frame rendered{' with the background recomputed every frame' if args.fresh_background else ''} "
-          f"(PNG encoding adds {png_ms:.1f} ms); {path}")
+          f"(PNG encoding adds {png_ms:.1f} ms)")
+    print_written(args, OUTPUTS)
 
 
 def _png_ms(image):

@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
+from benchmarks.common import print_written, init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
 
 OUTPUTS = ("skip.csv", "skip.png", "summary.md")
 
@@ -181,6 +181,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)
+    print_written(args, OUTPUTS)
     return rows
 
 

@@ -36,7 +36,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
+from benchmarks.common import print_written, init_taichi, output_folder, parser, positive, progress, provenance, table, write_csv
 
 DTS = (1 / 1000, 1 / 240, 1 / 60, 1 / 10)
 MODULI = (1e3, 1e4, 1e6, 1e8, 1e10)
@@ -247,6 +247,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)
+    print_written(args, OUTPUTS)
     return rows
 
 

@@ -25,7 +25,7 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (ROOT, init_taichi, output_folder, parser, positive, progress, provenance, seconds_per_call, table,
+from benchmarks.common import (print_written, ROOT, init_taichi, output_folder, parser, positive, progress, provenance, seconds_per_call, table,
                                write_csv)
 
 FULL_SIZES = [(12, 4, 4), (16, 6, 6), (20, 10, 10), (30, 14, 12), (40, 20, 20), (60, 30, 30), (100, 40, 42)]
@@ -270,6 +270,7 @@ def main(argv=None):
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)
+    print_written(args, OUTPUTS)
     return rows, fits
 
 

@@ -1,241 +1,30 @@
 """Every figure, table and number of the lecture notes: ``python -m demo figures``.
 
-    python -m demo figures                   # all sections, about 2-3 minutes on 2 CPU cores
+    python -m demo figures                   # all sections (a few minutes)
     python -m demo figures --only sweeps     # one section (names: --list)
-    python -m demo figures --check           # change nothing; fail if the notes are out of date
+    python -m demo figures --check           # change nothing; fail if the notes or READMEs are out of date
     python -m demo figures --full            # also the 31k-tet meshes (slow: its Newton steps)
 
-Writes PNGs and ``numbers.json`` into ``lecture_notes/figures/`` and then rewrites two kinds of
-blocks in the chapters (``lecture_notes/*.md``):
+Each section below draws PNGs into ``lecture_notes/figures/`` and returns its numbers and tables,
+which are stored in ``numbers.json``; then ``demo/notes_sync.py`` rewrites the marked text of the
+chapters and READMEs (generated blocks, values from results files, code excerpts) and records in
+``manifest.json`` what each section was drawn from, so that ``--check`` can tell a stale figure.
 
-* generated blocks ``<!-- begin generated: KEY -->`` ... ``<!-- end generated -->`` and inline
-  values ``<!--v:KEY-->...<!--/v-->`` get the text stored under KEY in ``numbers.json``;
-* code excerpts: a fenced block right after ``<!-- excerpt: solver/file.py Name.or.function -->``
-  gets that function's current source.
-
-``tests/test_lecture_notes.py`` fails when either is stale, so the notes stay true to the code.
-
-Every run also records, per section, a hash of what its figures are drawn from in
-``lecture_notes/figures/manifest.json``: the section's own code in this module (with the helpers and
-constants it names), the solver, the demo modules that build and draw scenes, the assets, and the
-parameters (``--size``, ``--full``), plus a hash of each PNG it wrote. ``--check`` recomputes them,
-so a figure whose code, solver or parameters changed since it was drawn (or a PNG replaced by hand)
-is reported as stale. Hashing the inputs rather than comparing pixels keeps the check exact on any
-machine: floating point and threading differ between CPUs, the hash of the source does not.
 The measurement set-up follows ``../shared/vbd-facts.md``: a 1 x 0.1 x 0.1 m bar pinned at x = 0,
 nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, gravity -9.81 z, float64 on the CPU, error
 ||x - x*|| / ||x* - x_n|| against the converged global Newton step x*.
 """
-import ast
-import hashlib
-import io
 import json
 import os
-import re
 import sys
-import textwrap
 import time
-import tokenize
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-NOTES = REPO_ROOT / "lecture_notes"
-FIGURES = NOTES / "figures"
-NUMBERS = "numbers.json"
-MANIFEST = "manifest.json"
-# What every section's figures are drawn from, besides the section's own code in this module.
-DEPENDENCIES = ("solver/**/*.py", "demo/scenes.py", "demo/runner.py", "demo/compose.py", "demo/render.py",
-                "demo/colors.py", "assets/*")
-
-GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body>.*?)(\n<!-- end generated -->)", re.S)
-INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
-EXCERPT = re.compile(r"(<!-- excerpt: (?P<path>\S+) (?P<name>[\w.]+) -->\n```python\n)(?P<body>.*?)(\n```)", re.S)
+from . import notes_sync
+from .notes_sync import FIGURES, NOTES, NUMBERS, chapters, stale
 
 BAR = dict(size=(1.0, 0.1, 0.1))
 CHECKPOINTS = (1, 2, 3, 5, 7, 10, 15, 20, 30, 50, 70, 100, 150, 200, 300, 500, 700, 1000)
-
-
-# ---------------------------------------------------------------------------------------------
-# Notes: generated blocks and code excerpts
-# ---------------------------------------------------------------------------------------------
-SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
-
-
-def function_source(path: Path, name: str) -> str:
-    """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators
-    included, without the homework's solution markers (a region that ends the function would otherwise
-    be quoted without its END line)."""
-    text = path.read_text(encoding="utf-8")
-    node = ast.parse(text)
-    for part in name.split("."):
-        matches = [child for child in ast.iter_child_nodes(node)
-                   if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and child.name == part]
-        if not matches:
-            raise KeyError(f"{name} not found in {path}")
-        node = matches[0]
-    first = min([node.lineno] + [d.lineno for d in node.decorator_list])
-    lines = [line for line in text.splitlines()[first - 1:node.end_lineno] if not SOLUTION_MARKER.match(line)]
-    return textwrap.dedent("\n".join(lines)).rstrip()
-
-
-def refresh_excerpts(text: str, root: Path = REPO_ROOT) -> str:
-    def replace(match):
-        body = function_source(root / match["path"], match["name"])
-        return match.group(1) + body + match.group(5)
-
-    return EXCERPT.sub(replace, text)
-
-
-def fill_generated(text: str, numbers: dict) -> str:
-    def block(match):
-        key = match["key"]
-        return match.group(1) + numbers[key] + match.group(4) if key in numbers else match.group(0)
-
-    def inline(match):
-        key = match["key"]
-        return match.group(1) + numbers[key] + match.group(4) if key in numbers else match.group(0)
-
-    return INLINE.sub(inline, GENERATED.sub(block, text))
-
-
-def chapters(notes: Path = NOTES):
-    return sorted(notes.glob("[0-9][0-9]-*.md"))
-
-
-def update_notes(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
-    """Rewrite the generated blocks and excerpts of every chapter; returns the files that changed."""
-    changed = []
-    for path in chapters(notes):
-        text = path.read_text(encoding="utf-8")
-        new = refresh_excerpts(fill_generated(text, numbers), root)
-        if new != text:
-            path.write_text(new, encoding="utf-8")
-            changed.append(path)
-    return changed
-
-
-def stale(numbers: dict, notes: Path = NOTES, root: Path = REPO_ROOT) -> list:
-    """Problems that `update_notes` would fix, or that it cannot: one line each."""
-    problems = []
-    for path in chapters(notes):
-        text = path.read_text(encoding="utf-8")
-        for match in list(GENERATED.finditer(text)) + list(INLINE.finditer(text)):
-            if match["key"] not in numbers:
-                problems.append(f"{path.name}: no number {match['key']!r} in {NUMBERS}; run python -m demo figures")
-            elif numbers[match["key"]] != match["body"]:
-                problems.append(f"{path.name}: {match['key']} differs from {NUMBERS}; run python -m demo figures")
-        for match in EXCERPT.finditer(text):
-            try:
-                source = function_source(root / match["path"], match["name"])
-            except (OSError, KeyError, SyntaxError) as e:
-                problems.append(f"{path.name}: excerpt {match['path']} {match['name']}: {e}")
-                continue
-            if source != match["body"]:
-                problems.append(f"{path.name}: excerpt of {match['path']} {match['name']} no longer matches the "
-                                f"source; run python -m demo figures --only excerpts")
-    return problems
-
-
-# ---------------------------------------------------------------------------------------------
-# Figures: what each was drawn from (manifest.json)
-# ---------------------------------------------------------------------------------------------
-def _code_text(text: str) -> str:
-    """Python source without comments, trailing spaces and blank lines: a comment edit is not a new figure."""
-    try:
-        comments = [token.start for token in tokenize.generate_tokens(io.StringIO(text).readline)
-                    if token.type == tokenize.COMMENT]
-    except (tokenize.TokenError, SyntaxError):
-        comments = []
-    lines = text.splitlines()
-    for row, col in comments:
-        lines[row - 1] = lines[row - 1][:col]
-    return "\n".join(line.rstrip() for line in lines if line.strip())
-
-
-def _section_code(name: str, root: Path = REPO_ROOT) -> str:
-    """The source of section `name` in demo/figures.py with every module-level helper and constant it
-    names, directly or through those helpers."""
-    text = (root / "demo" / "figures.py").read_text(encoding="utf-8")
-    definitions = {}
-    for node in ast.parse(text).body:
-        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
-            definitions[node.name] = node
-        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
-            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
-            for target in targets:
-                if isinstance(target, ast.Name):
-                    definitions[target.id] = node
-    wanted, todo = [], [f"section_{name}"]
-    while todo:
-        current = todo.pop()
-        if current in wanted or current not in definitions:
-            continue
-        wanted.append(current)
-        todo += [n.id for n in ast.walk(definitions[current]) if isinstance(n, ast.Name)]
-    return "\n\n".join(_code_text(ast.get_source_segment(text, definitions[n])) for n in sorted(wanted))
-
-
-def section_inputs(name: str, size, full: bool, root: Path = REPO_ROOT) -> str:
-    """A hash of everything section `name` draws its figures from (module docstring)."""
-    digest = hashlib.sha256()
-    digest.update(f"section {name}; size {size[0]}x{size[1]}; full {bool(full)}\n".encode())
-    digest.update(_section_code(name, root).encode())
-    for pattern in DEPENDENCIES:
-        for path in sorted(root.glob(pattern)):
-            if not path.is_file():
-                continue
-            data = path.read_bytes()
-            if path.suffix == ".py":
-                data = _code_text(data.decode("utf-8")).encode()
-            digest.update(f"\n{path.relative_to(root).as_posix()}\n".encode())
-            digest.update(data)
-    return digest.hexdigest()
-
-
-def _file_hash(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-def _snapshot(folder: Path) -> dict:
-    return {p.name: p.stat().st_mtime_ns for p in folder.glob("*.png")}
-
-
-def record_section(out: Path, name: str, before: dict, size, full: bool, root: Path = REPO_ROOT) -> None:
-    """Note in out/manifest.json what section `name` was drawn from and the PNGs it just wrote."""
-    path = out / MANIFEST
-    manifest = json.loads(path.read_text()) if path.exists() else {}
-    drawn = sorted(n for n, stamp in _snapshot(out).items() if before.get(n) != stamp)
-    manifest[name] = {"inputs": section_inputs(name, size, full, root), "size": f"{size[0]}x{size[1]}",
-                      "full": bool(full), "figures": {n: _file_hash(out / n) for n in drawn}}
-    path.write_text(json.dumps(manifest, indent=1, sort_keys=True) + "\n")
-
-
-def stale_figures(out: Path = FIGURES, notes: Path = NOTES, size=(960, 420), full: bool = False,
-                  root: Path = REPO_ROOT) -> list:
-    """Figures that no longer match what `python -m demo figures` would draw now: one line each."""
-    path = out / MANIFEST
-    if not path.exists():
-        return [f"no {MANIFEST} in {out}: the figures' origin is unknown; run python -m demo figures"]
-    manifest = json.loads(path.read_text())
-    problems, drawn = [], set()
-    for name in SECTIONS:
-        entry = manifest.get(name)
-        if entry is None:
-            problems.append(f"section {name} has never been drawn into {out}; run python -m demo figures --only {name}")
-            continue
-        drawn.update(entry["figures"])
-        if entry["inputs"] != section_inputs(name, size, full, root):
-            was = f"drawn at size {entry['size']}{' with --full' if entry['full'] else ''}"
-            problems.append(f"section {name}: its code, the solver, the scenes or the parameters changed since its "
-                            f"figures were {was}; run python -m demo figures --only {name}")
-        for figure, digest in sorted(entry["figures"].items()):
-            if not (out / figure).exists() or _file_hash(out / figure) != digest:
-                problems.append(f"{figure} is not the picture section {name} drew; "
-                                f"run python -m demo figures --only {name}")
-    for link in _figure_links(notes):
-        if (notes / link).parent.resolve() == out.resolve() and Path(link).name not in drawn:
-            problems.append(f"{link} is shown in the notes but drawn by no section")
-    return problems
 
 
 # ---------------------------------------------------------------------------------------------
@@ -439,6 +228,10 @@ def section_sweeps(out, full, size):
 
 
 def section_convergence(out, full, size):
+    import numpy as np
+
+    import solver
+
     plt = _pyplot()
     meshes = [(20, 2, 2), (40, 4, 4)] + ([(80, 8, 8)] if full else [])
     results = {}
@@ -468,10 +261,19 @@ def section_convergence(out, full, size):
             numbers[f"convergence.{cells[0]}.E{E:.0e}.k{k}".replace("+0", "")] = _sci(by_k[k][2])
         numbers[f"convergence.{cells[0]}.E{E:.0e}.ms_per_iteration".replace("+0", "")] = \
             f"{1000 * by_k[1000][1] / 1000:.2f}"
+    # how many sweeps per decade of error the stiff bars need, against ln(10) N_c^2 (chapters 5 and 7)
+    from solver.method import wave_cells
 
-    # run time against error: VBD (40x4x4) and the global Newton reference on the same step
-    import solver
+    for cells in meshes:
+        key = f"convergence.{cells[0]}.E1e6"
+        tets, rows_ = results[cells, 1e6]
+        by_k = {r[0]: r[2] for r in rows_}
+        n_c = wave_cells(solver.box_mesh(cells=cells, **BAR), _material(1e6), 1 / 60)
+        numbers[f"{key}.N_c"] = f"{n_c:.0f}"
+        numbers[f"{key}.predicted_sweeps_per_decade"] = f"{np.log(10) * n_c ** 2:.0f}"
+        numbers[f"{key}.measured_sweeps_per_decade"] = f"{900 / np.log10(by_k[100] / by_k[1000]):.0f}"
 
+    # run time against error: VBD (40x4x4) against the Taichi Newton and the numpy Newton on the same step
     fig, ax = plt.subplots()
     timing_rows = []
     for E in (1e4, 1e6):
@@ -481,26 +283,35 @@ def section_convergence(out, full, size):
         sim = _bar_sim((40, 4, 4), E)
         problem = sim.step_problem()
         x_n = sim.positions
-        x_star = sim.newton_reference()
-        result = solver.newton_solve(problem, problem.y_with_constraints(), 1e-10, 50, keep_iterates=True)
-        seconds = [h.seconds for h in result.history[1:]]
-        errs = [max(solver.relative_error(x, x_star, x_n), 1e-16) for x in result.iterates]
-        ax.loglog(seconds, errs, styles[E], marker="s", color="k", label=f"global Newton, E = {_E(E)} Pa")
+        x_star = sim.newton_reference()      # also compiles the Taichi Newton's kernels before it is timed
+        fast = solver.fast_newton_solve(problem, problem.y_with_constraints(), 1e-10, 50, keep_iterates=True)
+        oracle = solver.newton_solve(problem, problem.y_with_constraints(), 1e-10, 50)
+        seconds = [h.seconds for h in fast.history[1:]]
+        errs = [max(solver.relative_error(x, x_star, x_n), 1e-16) for x in fast.iterates]
+        ax.loglog(seconds, errs, styles[E], marker="s", color="k", label=f"Taichi Newton, E = {_E(E)} Pa")
         vbd_1e2 = next((r[1] for r in rows_ if r[2] <= 1e-2), None)
         vbd_1e6 = next((r[1] for r in rows_ if r[2] <= 1e-6), None)
+        newton_1e2 = next(t for t, e in zip(seconds, errs) if e <= 1e-2)
         timing_rows.append([f"{_E(E)} Pa", f"{1000 * rows_[CHECKPOINTS.index(100)][1] / 100:.2f} ms",
-                            "not in 1000 it." if vbd_1e2 is None else f"{vbd_1e2:.3f} s",
-                            "not in 1000 it." if vbd_1e6 is None else f"{vbd_1e6:.3f} s",
-                            f"{result.iterations}", f"{seconds[-1]:.2f} s"])
+                            "not in 1000 it." if vbd_1e2 is None else f"{1000 * vbd_1e2:.1f} ms",
+                            "not in 1000 it." if vbd_1e6 is None else f"{1000 * vbd_1e6:.1f} ms",
+                            f"{1000 * newton_1e2:.1f} ms", f"{fast.iterations}, {1000 * seconds[-1]:.1f} ms",
+                            f"{oracle.iterations}, {1000 * oracle.history[-1].seconds:.0f} ms"])
+        key = f"convergence.E{E:.0e}".replace("+0", "")
+        numbers[f"{key}.newton_ms"] = f"{1000 * seconds[-1]:.1f}"
+        numbers[f"{key}.numpy_newton_ms"] = f"{1000 * oracle.history[-1].seconds:.0f}"
+        numbers[f"{key}.vbd_1e-2_ms"] = "-" if vbd_1e2 is None else f"{1000 * vbd_1e2:.1f}"
+        numbers[f"{key}.vbd_1e-2_fraction"] = "-" if vbd_1e2 is None else f"{vbd_1e2 / seconds[-1]:.2f}"
     ax.set_xlabel("solver wall time in the step (s, this machine)")
     ax.set_ylabel("relative error")
     ax.set_title(f"Run time against error, bar 40x4x4 cells ({results[(40, 4, 4), 1e4][0]:,} tets), 1 step")
     ax.legend(fontsize=7)
     _save_plot(fig, out / "time_vs_error.png")
     numbers["convergence.timing.table"] = _table(
-        ["material", "VBD time per iteration", "VBD time to error 1e-2", "VBD time to error 1e-6",
-         "Newton iterations", "Newton time"], timing_rows) + (
-        f"\n\n*Measured by `python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
+        ["material", "VBD time per iteration", "VBD to error 1e-2", "VBD to error 1e-6",
+         "Taichi Newton to error 1e-2", "Taichi Newton: iterations, whole solve",
+         "numpy Newton: iterations, whole solve"], timing_rows) + (
+        f"\n\n*Measured by `.venv/bin/python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
         f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
         "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
     return numbers
@@ -532,7 +343,7 @@ def section_propagation(out, full, size):
     for k in range(1, 41):
         sim.run_iterations(1)
         moved = np.linalg.norm(sim.positions - rest, axis=1)
-        reached = layer[(moved > 1e-12) & sim.free_mask]
+        reached = layer[(moved > scene.color_range[0]) & sim.free_mask]    # the pictures' threshold
         fronts.append(cells - int(reached.min()) if len(reached) else 0)
         if k in (1, 2, 5, 10, 20, 40):
             profiles[k] = np.array([moved[layer == c].max() for c in range(cells + 1)])
@@ -546,6 +357,7 @@ def section_propagation(out, full, size):
     a.semilogy(xs, exact, "k--", label="Newton x*")
     a.set_xlabel("position along the bar (m); the right end was moved")
     a.set_ylabel("distance moved (m, log)")
+    a.axhline(scene.color_range[0], color="gray", lw=0.8)
     a.set_ylim(1e-16, 0.1)
     a.legend(fontsize=7)
     ks = np.arange(1, len(fronts) + 1)
@@ -560,6 +372,7 @@ def section_propagation(out, full, size):
     return {"propagation.front.table": _table(["iterations", *[str(k) for k in (1, 2, 3, 5, 10, 20)]],
                                               [["cell layers reached", *[str(fronts[k - 1]) for k in (1, 2, 3, 5, 10, 20)]]]),
             "propagation.rate": f"{rate:.2f}", "propagation.cells": str(cells),
+            "propagation.threshold": _sci(scene.color_range[0], 1),
             "propagation.full_at": str(next((k for k, f in zip(ks, fronts) if f >= cells - 1), "more than 40"))}
 
 
@@ -648,11 +461,81 @@ def section_remedy(out, full, size):
     return numbers
 
 
+def _short(value):
+    """A residual for prose: 26, 0.28, 5.2e-5."""
+    return f"{value:.2g}" if value >= 0.01 else _sci(value)
+
+
+def section_newton(out, full, size):
+    """Chapter 2: the largest force |dG/dx_i| after each Newton iteration on the stiff 1,920-tet bar, one
+    step from rest, for projected Newton (the numpy oracle) and the Taichi Newton (eigenvalue filtering
+    and chord steps). Numbers only, no figure."""
+    import solver
+
+    sim = _bar_sim((20, 4, 4), 1e6)
+    problem = sim.step_problem()
+    x0 = problem.y_with_constraints()
+    projected = solver.newton_solve(problem, x0, 1e-10, 50)
+    filtered = solver.fast_newton_solve(problem, x0, 1e-10, 50)
+    numbers = {"newton.tets": f"{sim.mesh.n_tets:,}"}
+    for name, result in (("projected", projected), ("filtered", filtered)):
+        numbers[f"newton.{name}.residuals"] = ", ".join(_short(h.max_gradient) for h in result.history)
+        numbers[f"newton.{name}.iterations"] = str(result.iterations)
+    return numbers
+
+
+def section_jacobi(out, full, size):
+    """Chapter 4: the same per-vertex update without colours (Jacobi: every vertex from the old positions
+    at once, `benchmarks/baselines.py`), plain and under-relaxed, against the coloured VBD sweep."""
+    import solver
+
+    from .errors import DemoError
+
+    try:
+        from benchmarks.baselines import JacobiSweep
+    except ImportError:
+        raise DemoError("the jacobi section needs benchmarks/baselines.py, which this copy of the project "
+                        "does not have (a homework starter leaves benchmarks/ out); skip it with --only") from None
+
+    plt = _pyplot()
+    checkpoints = CHECKPOINTS[:14]
+    fig, ax = plt.subplots()
+    rows = []
+    for E in (1e4, 1e6):
+        sim = _bar_sim((40, 4, 4), E)
+        x_n, x_star = sim.positions, sim.newton_reference()
+        curves = {"coloured Gauss-Seidel (VBD)": _convergence(sim, checkpoints, x_star)}
+        sim.reset()
+        for omega in (1.0, 0.5):
+            jacobi = JacobiSweep(sim, omega)
+            sim.begin_step()
+            curve, done = [], 0
+            for k in checkpoints:
+                jacobi.iterate(k - done)
+                done = k
+                curve.append((k, 0.0, solver.relative_error(sim.positions, x_star, x_n)))
+            sim.reset()     # a diverged Jacobi step is dropped, not ended
+            curves[f"Jacobi, omega = {omega}"] = curve
+        for (label, curve), style in zip(curves.items(), ("-", "--", ":")):
+            ax.loglog([r[0] for r in curve], [r[2] for r in curve], style, marker=".",
+                      label=f"{label}, E = {_E(E)} Pa")
+        rows += [[f"{_E(E)} Pa", label, *[_sci(dict((r[0], r[2]) for r in curve)[k]) for k in (10, 100, 200)]]
+                 for label, curve in curves.items()]
+    ax.set_xlabel("iterations in the step")
+    ax.set_ylabel("relative error")
+    ax.set_title("Without colours: Jacobi against coloured VBD, bar 40x4x4 cells, one step from rest")
+    ax.legend(fontsize=7)
+    _save_plot(fig, out / "jacobi.png")
+    return {"jacobi.table": _table(["E", "update order", *[f"error after {k} it." for k in (10, 100, 200)]], rows)}
+
+
 REMEDY_FRAME = 15      # t = 0.27 s: the plain VBD bar has sagged well below its ghost
 
 
 SECTIONS = {
     "colouring": section_coloring,
+    "jacobi": section_jacobi,
+    "newton": section_newton,
     "sweeps": section_sweeps,
     "convergence": section_convergence,
     "propagation": section_propagation,
@@ -662,49 +545,59 @@ SECTIONS = {
 }
 
 
+def _shown(path: Path) -> str:
+    """`path` relative to the working folder when it is inside it (no absolute paths in messages)."""
+    try:
+        return path.resolve().relative_to(Path.cwd()).as_posix()
+    except ValueError:
+        return path.name
+
+
 def main(argv=None):
     from . import cli
     from .errors import DemoError
 
     parser = cli.Parser(prog="python -m demo figures",
-                        description="Regenerate every figure, table and number of lecture_notes/.",
+                        description="Regenerate every figure, table and number of lecture_notes/ and the "
+                                    "numbers the READMEs quote from benchmarks/results/.",
                         formatter_class=cli.HelpFormatter)
     parser.add_argument("--only", default="", help="comma-separated sections to run (see --list); "
-                                                   "'excerpts' refreshes only the code excerpts")
+                                                   "'excerpts' only refreshes the code excerpts and the "
+                                                   "numbers from results files")
     parser.add_argument("--list", action="store_true", help="list the sections")
     parser.add_argument("--check", action="store_true", help="change nothing; exit 1 if the notes are stale")
     parser.add_argument("--full", action="store_true", help="include the 31k-tet meshes (slow)")
-    parser.add_argument("--out", type=Path, default=FIGURES, help="figures folder")
-    parser.add_argument("--notes", type=Path, default=NOTES, help="lecture notes folder")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="figures folder (default: this project's lecture_notes/figures)")
+    parser.add_argument("--notes", type=Path, default=None,
+                        help="lecture notes folder (default: this project's lecture_notes)")
     parser.add_argument("--size", type=cli.image_size, default="960x420", help="rendered frame size WxH")
     args = parser.parse_args(argv)
     if args.list:
-        for name, fn in SECTIONS.items():
+        for name in SECTIONS:
             print(name)
         print("excerpts")
         return 0
-    if not chapters(args.notes):
-        raise DemoError(f"no lecture-note chapters (NN-*.md) in {args.notes}; pass --notes with the "
+    out, notes = args.out or FIGURES, args.notes or NOTES
+    if not chapters(notes):
+        raise DemoError(f"no lecture-note chapters (NN-*.md) in {_shown(notes)}; pass --notes with the "
                         f"lecture_notes folder")
-    numbers_path = args.out / NUMBERS
+    numbers_path = out / NUMBERS
     numbers = json.loads(numbers_path.read_text()) if numbers_path.exists() else {}
     width, height = args.size
     if args.check:
-        problems = stale(numbers, args.notes)
+        problems = stale(numbers, notes) + notes_sync.stale_figures(SECTIONS, out, notes, (width, height), args.full)
         for line in problems:
             print(line)
-        missing = [m for m in _figure_links(args.notes) if not (args.notes / m).exists()]
-        for m in missing:
-            print(f"missing figure {m}; run python -m demo figures")
-        old_figures = stale_figures(args.out, args.notes, (width, height), args.full)
-        for line in old_figures:
-            print(line)
-        return 1 if problems or missing or old_figures else 0
+        if not problems:
+            print(f"notes, READMEs and figures are up to date ({len(notes_sync.documents(notes))} documents, "
+                  f"{len(SECTIONS)} figure sections)")
+        return 1 if problems else 0
     selected = [s for s in args.only.split(",") if s] or list(SECTIONS)
     unknown = [s for s in selected if s not in SECTIONS and s != "excerpts"]
     if unknown:
         raise DemoError(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}, excerpts")
-    args.out.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
     for name in selected:
         if name == "excerpts":
@@ -713,21 +606,16 @@ def main(argv=None):
 
         solver.ensure_taichi("cpu")
         t = time.perf_counter()
-        before = _snapshot(args.out)
-        numbers.update(SECTIONS[name](args.out, args.full, (width, height)))
+        before = notes_sync.snapshot(out)
+        numbers.update(SECTIONS[name](out, args.full, (width, height)))
         numbers_path.write_text(json.dumps(numbers, indent=1, sort_keys=True) + "\n")
-        record_section(args.out, name, before, (width, height), args.full)
+        notes_sync.record_section(out, name, before, (width, height), args.full)
         print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
-    changed = update_notes(numbers, args.notes)
-    print(f"figures in {args.out}/, {len(changed)} chapter(s) updated, {time.perf_counter() - started:.0f} s in all")
+    changed = notes_sync.update_notes(numbers, notes)
+    print(f"figures in {_shown(out)}/, {len(changed)} document(s) updated"
+          + "".join(f"\n  wrote {_shown(p)}" for p in changed)
+          + f"\n{time.perf_counter() - started:.0f} s in all")
     return 0
-
-
-def _figure_links(notes: Path):
-    links = set()
-    for path in chapters(notes):
-        links.update(re.findall(r"!\[[^\]]*\]\(([^)]+\.png)\)", path.read_text(encoding="utf-8")))
-    return sorted(links)
 
 
 if __name__ == "__main__":

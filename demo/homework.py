@@ -365,7 +365,7 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
 def _refresh_starter_notes(out: Path):
     """Re-quote the code excerpts of the starter's lecture notes from the starter's own sources, so
     that the notes show the TODOs and no solution code."""
-    from .figures import chapters, refresh_excerpts
+    from .notes_sync import chapters, refresh_excerpts
 
     for path in chapters(out / "lecture_notes"):
         text = path.read_text(encoding="utf-8")

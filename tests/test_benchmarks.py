@@ -17,6 +17,8 @@ def run_quick(module, out):
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "|" in proc.stdout            # the printed summary table
+    files = _module(module).OUTPUTS
+    assert proc.stdout.strip().splitlines()[-1] == f"wrote {', '.join(files)} into {out}"   # what it wrote, last
     return proc.stdout
 
 
@@ -256,4 +258,33 @@ def test_render_speed_quick(tmp_path, capsys):
     data = rows(tmp_path / "render_speed.csv")
     assert len(data) == 3 and all(float(r["render_ms"]) > 0 for r in data)
     assert (tmp_path / "render_speed_frame.png").stat().st_size > 0
-    assert "[Taichi]" not in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "[Taichi]" not in out
+    assert out.strip().splitlines()[-1] == f"wrote render_speed.csv, render_speed_frame.png into {tmp_path}"
+
+
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+def test_help_names_the_command(capsys, name):
+    module = _module(name)
+    with pytest.raises(SystemExit) as stop:
+        module.main(["--help"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.startswith(f"usage: python -m benchmarks.{name} ")
+
+
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+def test_the_readme_says_what_each_benchmark_writes(name):
+    module = _module(name)
+    files = getattr(module, "OUTPUTS", None) or module.FILES
+    with open(os.path.join(ROOT, "benchmarks", "README.md")) as fh:
+        row = next(line for line in fh if line.startswith(f"| `.venv/bin/python -m benchmarks.{name}` |"))
+    written = row.rstrip().rstrip("|").rsplit("|", 1)[1]
+    assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
+
+
+@pytest.mark.slow
+def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
+    assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == \
+        f"wrote interactive_fps.csv, summary.md into {tmp_path}"
+    assert len(rows(tmp_path / "interactive_fps.csv")) == 2

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from demo import figures
+from demo import figures, notes_sync
 from demo.errors import DemoError
 
 REPO = Path(__file__).resolve().parent.parent
@@ -16,11 +16,11 @@ CHAPTERS = ["01-implicit-euler.md", "02-newton.md", "03-coordinate-descent.md", 
 
 
 def numbers():
-    return json.loads((NOTES / "figures" / figures.NUMBERS).read_text())
+    return json.loads((NOTES / "figures" / notes_sync.NUMBERS).read_text())
 
 
 def test_chapters_follow_the_lecture_order():
-    assert [p.name for p in figures.chapters()] == CHAPTERS
+    assert [p.name for p in notes_sync.chapters()] == CHAPTERS
     index = (NOTES / "README.md").read_text()
     for number, name in enumerate(CHAPTERS, start=1):
         assert (NOTES / name).read_text().startswith(f"# {number}. ")
@@ -29,12 +29,12 @@ def test_chapters_follow_the_lecture_order():
 
 def test_every_excerpt_matches_the_source_it_names():
     quoted = set()
-    for path in figures.chapters():
+    for path in notes_sync.chapters():
         text = path.read_text()
-        assert text.count("<!-- excerpt:") == len(figures.EXCERPT.findall(text)), \
+        assert text.count("<!-- excerpt:") == len(notes_sync.EXCERPT.findall(text)), \
             f"{path.name}: an excerpt marker is not followed by a ```python block"
-        for match in figures.EXCERPT.finditer(text):
-            source = figures.function_source(REPO / match["path"], match["name"])
+        for match in notes_sync.EXCERPT.finditer(text):
+            source = notes_sync.function_source(REPO / match["path"], match["name"])
             assert match["body"] == source, (f"{path.name}: the excerpt of {match['path']} {match['name']} no longer "
                                              f"matches the source; run python -m demo figures --only excerpts")
             quoted.add(match["name"])
@@ -43,14 +43,14 @@ def test_every_excerpt_matches_the_source_it_names():
 
 
 def test_generated_blocks_match_numbers_json():
-    assert figures.stale(numbers()) == []
-    for path in figures.chapters():
+    assert notes_sync.stale(numbers()) == []
+    for path in notes_sync.chapters():
         text = path.read_text()
         assert "(run python -m demo figures)" not in text and "-->?<!--" not in text, path.name
 
 
 def test_every_figure_exists_and_is_small():
-    links = figures._figure_links(NOTES)
+    links = notes_sync.figure_links(NOTES)
     assert len(links) >= 10
     total = 0
     for link in links:
@@ -74,6 +74,7 @@ def test_math_delimiters_are_balanced(name):
 
 def test_check_command_passes_on_the_repository(capsys):
     assert figures.main(["--check"]) == 0
+    assert "are up to date" in capsys.readouterr().out
 
 
 def test_a_changed_source_is_caught(tmp_path):
@@ -85,15 +86,80 @@ def test_a_changed_source_is_caught(tmp_path):
     chapter = notes / "01-x.md"
     chapter.write_text("<!-- excerpt: pkg/mod.py A.f -->\n```python\nold\n```\n"
                        "<!-- begin generated: t -->\nold\n<!-- end generated -->\nv = <!--v:n-->1<!--/v-->\n")
-    problems = figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path)
+    problems = notes_sync.stale({"t": "new", "n": "2"}, notes, root=tmp_path)
     assert len(problems) == 3 and any("no longer matches" in p for p in problems)
-    figures.update_notes({"t": "new", "n": "2"}, notes, root=tmp_path)
+    notes_sync.update_notes({"t": "new", "n": "2"}, notes, root=tmp_path)
     text = chapter.read_text()
     assert "@staticmethod\ndef f(x):\n    return x + 1\n```" in text
     assert "<!-- begin generated: t -->\nnew\n<!-- end generated -->" in text and "<!--v:n-->2<!--/v-->" in text
-    assert figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path) == []
+    assert notes_sync.stale({"t": "new", "n": "2"}, notes, root=tmp_path) == []
     source.write_text(source.read_text().replace("x + 1", "x + 2"))
-    assert any("A.f no longer matches" in p for p in figures.stale({"t": "new", "n": "2"}, notes, root=tmp_path))
+    assert any("A.f no longer matches" in p for p in notes_sync.stale({"t": "new", "n": "2"}, notes, root=tmp_path))
+
+
+def _results_project(tmp_path):
+    """A project with one results CSV, one summary and a chapter quoting them."""
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "runs.csv").write_text('case,method,seconds\n"bar, rest",VBD,0.01234\n'
+                                                   '"bar, rest",Newton,0.5\n"bar, moving",VBD,0.02\n')
+    (tmp_path / "results" / "summary.md").write_text("| a |\n|---|\n| 1 |\n\n![plot](plot.png) [web](https://x.org)\n")
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    chapter = notes / "01-x.md"
+    chapter.write_text("VBD: <!--n: results/runs.csv | case=bar, rest; method=VBD | seconds | 1000*.1f -->99<!--/n--> ms, "
+                       "<!--n: results/runs.csv | method=Newton | seconds | sci -->0.5<!--/n--> s.\n"
+                       "<!-- begin include: results/summary.md -->\nold\n<!-- end include -->\n")
+    return notes, chapter
+
+
+def test_numbers_from_results_files_are_checked_and_filled(tmp_path):
+    notes, chapter = _results_project(tmp_path)
+    problems = notes_sync.stale({}, notes, root=tmp_path)
+    assert len(problems) == 3
+    assert any("'99' should be '12.3'" in p for p in problems) and any("'0.5' should be '5.0e-1'" in p for p in problems)
+    assert any("copy of results/summary.md differs" in p for p in problems)
+    notes_sync.update_notes({}, notes, root=tmp_path)
+    text = chapter.read_text()
+    assert "-->12.3<!--/n--> ms" in text and "-->5.0e-1<!--/n--> s" in text
+    # the included file's relative links still point at the files beside it
+    assert "| 1 |\n\n![plot](../results/plot.png) [web](https://x.org)\n<!-- end include -->" in text
+    assert notes_sync.stale({}, notes, root=tmp_path) == []
+    # a new measurement makes the quoted number stale
+    path = tmp_path / "results" / "runs.csv"
+    path.write_text(path.read_text().replace("0.01234", "0.0201"))
+    assert notes_sync.stale({}, notes, root=tmp_path) == [
+        "01-x.md: '12.3' should be '20.1' (results/runs.csv | case=bar, rest; method=VBD | seconds | 1000*.1f); "
+        "run python -m demo figures --only excerpts"]
+
+
+@pytest.mark.parametrize("marker, message", [
+    ("<!--n: results/runs.csv | method=VBD | seconds | .2f -->1<!--/n-->", "2 rows match 'method=VBD', not one"),
+    ("<!--n: results/none.csv | method=VBD | seconds | .2f -->1<!--/n-->", "results file results/none.csv does not exist"),
+    ("<!--n: results/runs.csv | method=Newton | minutes | .2f -->1<!--/n-->", "no value in column 'minutes'"),
+    ("<!--n: results/runs.csv | method=Newton | seconds -->1<!--/n-->", "needs four fields"),
+    ("<!--n: results/runs.csv | method=Newton | case | .2f -->1<!--/n-->", "cannot be written with format"),
+])
+def test_a_results_marker_that_names_no_single_value_is_reported(tmp_path, marker, message):
+    notes, chapter = _results_project(tmp_path)
+    chapter.write_text(marker + "\n")
+    problems = notes_sync.stale({}, notes, root=tmp_path)
+    assert len(problems) == 1 and message in problems[0], problems
+    notes_sync.update_notes({}, notes, root=tmp_path)
+    assert chapter.read_text() == marker + "\n"
+
+
+def test_readmes_quote_their_numbers_from_results_files():
+    readme = (REPO / "README.md").read_text()
+    assert len(readme.encode()) < 15_000, "the README is a user's README: under 15 KB"
+    first_image = re.search(r"!\[[^\]]*\]\(([^)]+)\)", readme)
+    assert first_image and readme.index(first_image.group(0)) < readme.index("## "), "a picture at the top"
+    assert (REPO / first_image.group(1)).is_file()
+    documents = [p.relative_to(REPO).as_posix() for p in notes_sync.documents(NOTES)]
+    assert {"README.md", "benchmarks/README.md"} <= set(documents)
+    assert notes_sync.RESULT.search(readme), "the README's measured numbers come from results files"
+    bench = (REPO / "benchmarks" / "README.md").read_text()
+    included = {m["path"] for m in notes_sync.INCLUDE.finditer(bench)}
+    assert {f"benchmarks/results/{name}/summary.md" for name in ("pareto", "throughput", "newton_speed")} <= included
 
 
 def test_unknown_section_is_an_error(tmp_path):
@@ -112,7 +178,7 @@ def test_excerpts_only_run_touches_no_figure(tmp_path):
 def test_figures_match_what_the_command_would_draw():
     """manifest.json records a hash of every section's inputs (its code, the solver, the scenes, the
     parameters) and of each PNG; after a change to any of them, `python -m demo figures` must run again."""
-    assert figures.stale_figures() == []
+    assert notes_sync.stale_figures(figures.SECTIONS) == []
 
 
 def _figure_project(tmp_path):
@@ -122,14 +188,14 @@ def _figure_project(tmp_path):
         shutil.copytree(REPO / folder, root / folder, ignore=shutil.ignore_patterns("__pycache__"))
     out = root / "lecture_notes" / "figures"
     out.mkdir(parents=True)
-    before = figures._snapshot(out)
+    before = notes_sync.snapshot(out)
     (out / "propagation_01.png").write_bytes(b"a picture")
-    figures.record_section(out, "propagation", before, (960, 420), False, root=root)
+    notes_sync.record_section(out, "propagation", before, (960, 420), False, root=root)
     return root, out
 
 
 def _propagation_problems(root, out, size=(960, 420)):
-    return [p for p in figures.stale_figures(out, root / "lecture_notes", size, False, root=root)
+    return [p for p in notes_sync.stale_figures(figures.SECTIONS, out, root / "lecture_notes", size, False, root=root)
             if "propagation" in p]
 
 
@@ -163,14 +229,22 @@ def test_figure_check_catches_changed_code_parameters_and_pictures(tmp_path):
 def test_check_command_fails_on_stale_figures(tmp_path, capsys):
     notes = tmp_path / "notes"
     shutil.copytree(NOTES, notes)
-    manifest = json.loads((notes / "figures" / figures.MANIFEST).read_text())
+    manifest = json.loads((notes / "figures" / notes_sync.MANIFEST).read_text())
     manifest["sweeps"]["inputs"] = "0" * 64
-    (notes / "figures" / figures.MANIFEST).write_text(json.dumps(manifest))
+    (notes / "figures" / notes_sync.MANIFEST).write_text(json.dumps(manifest))
     assert figures.main(["--check", "--out", str(notes / "figures"), "--notes", str(notes)]) == 1
     assert "section sweeps:" in capsys.readouterr().out
 
 
 def test_excerpts_show_no_solution_markers():
-    for path in figures.chapters():
-        for match in figures.EXCERPT.finditer(path.read_text()):
+    for path in notes_sync.chapters():
+        for match in notes_sync.EXCERPT.finditer(path.read_text()):
             assert "SOLUTION" not in match["body"], f"{path.name}: {match['name']}"
+
+
+def test_documented_commands_use_the_venv_python():
+    """After the quick start only .venv/bin/python has Taichi: a bare `python -m ...` gives an ImportError."""
+    for path in notes_sync.documents(NOTES):
+        text = notes_sync.INCLUDE.sub("", path.read_text())      # included results record how they were run
+        bare = re.findall(r"(?:^|[`\s(])python3? -m (?!venv\b)[\w.]+", text, flags=re.M)
+        assert not bare, f"{path.name}: {bare[:3]}"
