@@ -10,6 +10,7 @@ Importing this package does not initialise Taichi; `Simulation` does that on fir
 """
 from .backend import Precision, ensure_taichi
 from .mesh.coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
+from .physics.contact import Contact
 from .physics.ground import Ground
 from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
 from .newton.direct import LinearSolver, fast_newton_solve
@@ -25,7 +26,7 @@ from .mesh.tetrahedralize import Mesher
 from .mesh.topology import Topology
 
 __all__ = [
-    "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
+    "Coloring", "ConfigError", "Contact", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
     "MeshError", "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "Method", "NewtonResult",
     "Precision", "Preconditioner", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder",
     "boundary_faces", "box_mesh", "color_vertices", "det_F", "ensure_taichi", "fast_newton_solve",
