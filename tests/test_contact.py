@@ -287,3 +287,45 @@ def test_friction_opposes_relative_sliding_and_saturates_at_coulomb():
         else:
             assert 0 < -f[0, 0] < coulomb
         assert np.linalg.eigvalsh(H[0]).min() >= -1e-9
+
+
+def test_sums_over_pairs_for_the_newton_reference():
+    """contact_energy_np/gradient_np/hessian_np on a mesh of shaken bodies: the gradient is the finite
+    difference of the energy, the Hessian is symmetric PSD and assembled at the pairs' vertices."""
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+    from solver.mesh.bodies import body_labels
+    from solver.mesh.surface import surface_primitives
+
+    rng = np.random.default_rng(2)
+    cube = solver.box_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1))
+    mesh = solver.merge_meshes([cube, solver.TetMesh(cube.vertices + [0.02, 0.03, 0.11], cube.tets)])
+    contact = solver.Contact(stiffness=1e4, radius=0.03)
+    surface, bodies = surface_primitives(mesh.tets), body_labels(mesh.tets, mesh.n_vertices)
+    free = np.ones(mesh.n_vertices, bool)
+    excluded = rest_exclusions_np(mesh.vertices, surface, bodies, contact)
+    x = mesh.vertices + rng.normal(0, 0.002, mesh.vertices.shape)
+    kind, vertices, _, distance = find_pairs_np(x, surface, bodies, free, contact, excluded)
+    assert (distance < contact.radius).sum() > 4
+    E = C.contact_energy_np(x, kind, vertices, contact)
+    assert E == pytest.approx(C.pair_energy_np(kind, x[vertices], contact).sum()) and E > 0
+    g = C.contact_gradient_np(x, kind, vertices, contact)
+    eps = 1e-8
+    fd = np.zeros_like(x)
+    for i in np.unique(vertices):
+        for a in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, a] += eps
+            xm[i, a] -= eps
+            fd[i, a] = (C.contact_energy_np(xp, kind, vertices, contact)
+                        - C.contact_energy_np(xm, kind, vertices, contact)) / (2 * eps)
+    assert np.linalg.norm(g - fd) <= 1e-6 * np.linalg.norm(g)
+    np.testing.assert_allclose(g.sum(axis=0), 0.0, atol=1e-9 * np.abs(g).max())
+    H = C.contact_hessian_np(x, kind, vertices, contact).toarray()
+    np.testing.assert_allclose(H, H.T, atol=1e-9 * np.abs(H).max())
+    assert np.linalg.eigvalsh(H).min() >= -1e-9 * np.abs(H).max()
+    # assembled at the right places: u^T H u = sum over pairs of b''(d) (sum_j w_j n . u_j)^2
+    d, w, n = C.pair_geometry_np(kind, x[vertices])
+    _, d2b = C.barrier_derivatives_np(d, contact.stiffness, contact.radius)
+    u = rng.normal(size=x.shape)
+    along = np.einsum("pj,pa,pja->p", w, n, u[vertices])
+    assert u.ravel() @ H @ u.ravel() == pytest.approx(np.sum(d2b * along ** 2), rel=1e-12)

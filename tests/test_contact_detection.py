@@ -122,3 +122,28 @@ def test_pairs_of_fixed_vertices_only_are_skipped():
     x = _positions(mesh.vertices)
     assert ContactDetector(mesh, np.ones(mesh.n_vertices, bool), contact).detect(x) > 0
     assert ContactDetector(mesh, np.zeros(mesh.n_vertices, bool), contact).detect(x) == 0
+
+
+def test_numpy_twin_finds_the_same_pairs_and_exclusions():
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+
+    solver.ensure_taichi()
+    rng = np.random.default_rng(21)
+    mesh = _scene(rng, n_bodies=4)
+    contact = solver.Contact(radius=0.01, query_radius=0.08)
+    free = rng.uniform(size=mesh.n_vertices) < 0.7
+    detector = ContactDetector(mesh, free, contact)
+    excluded = rest_exclusions_np(mesh.vertices, detector.surface, detector.bodies, contact)
+    n_vt, n_ee = detector._n_excluded
+    np.testing.assert_array_equal(excluded[0], detector._excluded_vt.to_numpy()[:n_vt])
+    np.testing.assert_array_equal(excluded[1], detector._excluded_ee.to_numpy()[:n_ee])
+    for _ in range(10):
+        x = mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape)
+        detector.detect(_positions(x))
+        kind, vertices, primitives, distance = find_pairs_np(x, detector.surface, detector.bodies, free, contact,
+                                                             excluded)
+        kind_t, _, primitives_t, distance_t = detector.pairs()
+        got = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind_t, primitives_t, distance_t)}
+        want = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
+        assert got.keys() == want.keys() and len(want) == len(kind) > 0
+        np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)

@@ -413,3 +413,30 @@ def pair_friction_np(kind, X, X_n, contact: Contact, h: float):
     forces = -(k_f[:, None] * w)[:, :, None] * u_t[:, None, :]
     blocks = (k_f[:, None] * w ** 2)[:, :, None, None] * P[:, None]
     return forces, blocks
+
+
+# ---------------------------------------------------------------------------------------------
+# Sums over the pairs, for the Newton reference (newton.StepProblem).
+# ---------------------------------------------------------------------------------------------
+def contact_energy_np(x, kind, vertices, contact: Contact) -> float:
+    """E_c = sum of b(d) over the pairs in J; x (N, 3), kind (P,) `PairKind`, vertices (P, 4)."""
+    return float(pair_energy_np(kind, x[vertices], contact).sum())
+
+
+def contact_gradient_np(x, kind, vertices, contact: Contact) -> np.ndarray:
+    """(N, 3) dE_c/dx: minus the pair forces, gathered at their vertices."""
+    g = np.zeros_like(x, dtype=np.float64)
+    np.add.at(g, np.asarray(vertices).ravel(), -pair_forces_np(kind, x[vertices], contact).reshape(-1, 3))
+    return g
+
+
+def contact_hessian_np(x, kind, vertices, contact: Contact):
+    """(3N, 3N) scipy.sparse csr sum of the PSD pair Hessians b''(d) (w (x) n)(w (x) n)^T."""
+    import scipy.sparse as sp
+
+    blocks = pair_hessian_np(kind, x[vertices], contact)
+    dof = (3 * np.asarray(vertices)[:, :, None] + np.arange(3)).reshape(-1, 12)
+    rows = np.broadcast_to(dof[:, :, None], blocks.shape).ravel()
+    cols = np.broadcast_to(dof[:, None, :], blocks.shape).ravel()
+    n = 3 * len(x)
+    return sp.coo_matrix((blocks.ravel(), (rows, cols)), shape=(n, n)).tocsr()

@@ -22,7 +22,7 @@ import numpy as np
 from .._ti import ti
 from ..mesh.bodies import body_labels
 from ..mesh.surface import surface_primitives
-from .contact import Contact, PairKind, edge_edge, point_triangle
+from .contact import Contact, PairKind, edge_edge, edge_edge_np, point_triangle, point_triangle_np
 
 # Bits of the cell hash (Teschner et al. 2003's large primes); the bucket count is a power of two.
 HASH_PRIMES = (73856093, 19349663, 83492791)
@@ -379,3 +379,66 @@ def _device(values: np.ndarray, dtype):
     array = ti.ndarray(dtype, len(values))
     array.from_numpy(np.ascontiguousarray(values))
     return array
+
+
+# ---------------------------------------------------------------------------------------------
+# Numpy twin, for the Newton reference: the same pairs, found with scipy's k-d tree instead of the grid.
+# ---------------------------------------------------------------------------------------------
+def find_pairs_np(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray, contact: Contact,
+                  excluded, rest_mode: bool = False):
+    """The pairs at x (N, 3) as (kind (P,) int32, vertices (P, 4) int32, primitives (P, 2) int32,
+    distance (P,)), the same set as `ContactDetector` finds, ordered by query, then partner.
+
+    surface: `SurfacePrimitives`; bodies (N,) int; free (N,) bool; excluded: the (vertex-triangle keys,
+    edge-edge keys) of `rest_exclusions_np`. rest_mode: list the same-body pairs only, free or not,
+    ignoring `excluded` (how those keys are made).
+    """
+    from scipy.spatial import cKDTree
+
+    q = contact.query_radius
+    V, E, T = surface.vertices, surface.edges, surface.triangles
+    found = []
+    # vertex-triangle: triangles whose centroid is within q + (largest centroid-to-corner distance)
+    centroid = x[T].mean(axis=1)
+    reach = np.linalg.norm(x[T] - centroid[:, None], axis=2).max()
+    near = cKDTree(centroid).query_ball_point(x[V], q + reach)
+    query = np.repeat(np.arange(len(V)), [len(n) for n in near])
+    tri = np.concatenate([np.asarray(n, dtype=np.int64) for n in near] + [np.zeros(0, np.int64)])
+    left, right = V[query][:, None], T[tri]
+    keys = V[query].astype(np.int64) * len(T) + tri
+    found.append((PairKind.VERTEX_TRIANGLE, query, np.stack([V[query], tri], 1), left, right, keys,
+                  lambda y: point_triangle_np(y[left[:, 0]], y[right[:, 0]], y[right[:, 1]], y[right[:, 2]])[0]))
+    # edge-edge: midpoints within q + (longest edge)
+    mid = x[E].mean(axis=1)
+    longest = np.linalg.norm(x[E[:, 1]] - x[E[:, 0]], axis=1).max()
+    ab = cKDTree(mid).query_pairs(q + longest, output_type="ndarray").astype(np.int64).reshape(-1, 2)
+    ab = np.sort(ab, axis=1)
+    ea, eb = E[ab[:, 0]], E[ab[:, 1]]
+    found.append((PairKind.EDGE_EDGE, len(V) + ab[:, 0], ab, ea, eb, ab[:, 0] * len(E) + ab[:, 1],
+                  lambda y: edge_edge_np(y[ea[:, 0]], y[ea[:, 1]], y[eb[:, 0]], y[eb[:, 1]])[0]))
+    parts = []
+    for k, (kind, query, primitives, left, right, keys, dist) in enumerate(found):
+        disjoint = ~(left[:, :, None] == right[:, None, :]).any(axis=(1, 2))
+        same = bodies[left[:, 0]] == bodies[right[:, 0]]
+        if rest_mode:
+            keep = disjoint & same
+        else:
+            allowed = ~same | (contact.self_contact & ~np.isin(keys, excluded[k]))
+            keep = disjoint & allowed & (free[left].any(axis=1) | free[right].any(axis=1))
+        d = dist(x)
+        keep &= d < q
+        vertices = np.concatenate([left, right], axis=1)
+        order = np.lexsort((primitives[keep, 1], query[keep]))
+        parts.append((np.full(keep.sum(), int(kind), np.int32), vertices[keep][order].astype(np.int32),
+                      primitives[keep][order].astype(np.int32), d[keep][order]))
+    return tuple(np.concatenate(arrays) for arrays in zip(*parts))
+
+
+def rest_exclusions_np(rest: np.ndarray, surface, bodies: np.ndarray, contact: Contact):
+    """(vertex-triangle keys, edge-edge keys), sorted int64: the same-body pairs closer than query_radius
+    at the rest positions rest (N, 3), keyed vertex * T + triangle and edge_a * E + edge_b."""
+    kind, _, primitives, _ = find_pairs_np(rest, surface, bodies, np.ones(len(rest), bool), contact, None,
+                                           rest_mode=True)
+    sizes = (len(surface.triangles), len(surface.edges))
+    return tuple(np.unique(primitives[kind == k, 0].astype(np.int64) * size + primitives[kind == k, 1])
+                 for k, size in zip(PairKind, sizes))
