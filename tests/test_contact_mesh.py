@@ -57,3 +57,28 @@ def test_surface_primitives_of_a_cube():
     np.testing.assert_array_equal(s.vertices, np.unique(s.triangles))
     with pytest.raises(ValueError):
         s.edges[0, 0] = 5
+
+
+def test_the_crossing_judge_sees_a_vertex_pushed_through_a_face():
+    from contact_checks import crossings
+
+    cube = solver.box_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2))
+    apart = solver.merge_meshes([cube, solver.TetMesh(cube.vertices + [0.03, 0.02, 0.101], cube.tets)])
+    assert len(crossings(apart.vertices, apart.tets)[0]) == 0
+    x = apart.vertices.copy()
+    # the top cube's bottom-centre vertex 1 cm down, through the lower cube's top face
+    bottom_centre = np.flatnonzero(np.all(np.isclose(apart.vertices, [0.08, 0.07, 0.101]), axis=1))
+    x[bottom_centre] -= [0, 0, 0.01]
+    found, edges, triangles = crossings(x, apart.tets)
+    assert len(found) > 0
+    # every crossing involves the pushed vertex: its edges through the lower top face, or the lower
+    # top face's edges through the triangles around it
+    assert all(bottom_centre[0] in edges[e] or bottom_centre[0] in triangles[t] for e, t in found)
+    assert len(crossings(x - np.where(np.arange(len(x))[:, None] >= cube.n_vertices, [0, 0, -0.02], 0),
+                         apart.tets)[0]) == 0
+    # self contact: a cube's own surface folded through itself is judged only with self_contact
+    folded = cube.vertices.copy()
+    top_centre = np.flatnonzero(np.all(np.isclose(cube.vertices, [0.05, 0.05, 0.1]), axis=1))
+    folded[top_centre] = [0.05, 0.05, -0.02]
+    assert len(crossings(folded, cube.tets)[0]) > 0
+    assert len(crossings(folded, cube.tets, self_contact=False)[0]) == 0
