@@ -147,3 +147,19 @@ def test_numpy_twin_finds_the_same_pairs_and_exclusions():
         want = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
         assert got.keys() == want.keys() and len(want) == len(kind) > 0
         np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("n,chunk", [(0, 64), (1, 64), (63, 64), (64, 64), (1000, 64), (4097, 100)])
+def test_exclusive_scan_is_the_cumulative_sum(n, chunk):
+    from solver.physics.contact_detection import exclusive_scan
+
+    solver.ensure_taichi()
+    counts = np.random.default_rng(n).integers(0, 9, max(n, 1)).astype(np.int32)
+    device_counts = ti.ndarray(ti.i32, len(counts))
+    device_counts.from_numpy(counts)
+    starts = ti.ndarray(ti.i32, len(counts) + 1)
+    partial = ti.ndarray(ti.i32, len(counts) // chunk + 1)
+    total = exclusive_scan(device_counts, starts, n, chunk, partial)
+    want = np.concatenate([[0], np.cumsum(counts[:n])])
+    assert total == want[-1]
+    np.testing.assert_array_equal(starts.to_numpy()[:n + 1], want)

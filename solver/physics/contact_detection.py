@@ -5,9 +5,10 @@ One detection, all in kernels on the device:
   1. every triangle and edge gets its box grown by the query radius q, as a range of grid cells;
   2. the grid: count the entries of each hash bucket, prefix sum, scatter the items into their
      buckets, sort each bucket (so that everything after is deterministic);
-  3. every surface vertex looks up the triangles in its cell, and every edge the edges in the cells of
-     its box, each unordered edge pair once (reported in the lowest cell the two ranges share); a
-     candidate that passes the filters below and lies closer than q is a pair. One pass counts the
+  3. every surface vertex looks up the triangles in its cell (first in each sorted bucket), and every
+     edge the edges of higher index in the cells of its box, each unordered edge pair once (reported
+     in the lowest cell the two ranges share); a candidate whose box meets the query's, that passes
+     the filters below and lies closer than q is a pair. One pass counts the
      pairs of each query, a prefix sum places them, a second pass writes them in order;
   4. per-vertex incidence lists (CSR: offsets, pair ids ascending), so that a vertex gathers its terms
      without atomics;
@@ -62,28 +63,47 @@ def item_box(positions: ti.template(), row, triangles: ti.template(), edges: ti.
 
 @ti.kernel
 def cell_ranges(positions: ti.types.ndarray(), row: ti.i32, triangles: ti.types.ndarray(),
-                edges: ti.types.ndarray(), q: ti.f64, cell: ti.f64, lo: ti.types.ndarray(),
-                hi: ti.types.ndarray(), fill: ti.types.ndarray(), mask: ti.i32, dtype: ti.template()):
-    """lo/hi (T + E,) cell ranges of every item's box grown by q, and fill (B,) its bucket counts."""
+                edges: ti.types.ndarray(), q: ti.f64, cell: ti.f64, box_lo: ti.types.ndarray(),
+                box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
+                fill: ti.types.ndarray(), mask: ti.i32, dtype: ti.template()):
+    """box_lo/box_hi (T + E,) corners of every item's box grown by q, lo/hi their cell ranges, and
+    fill (B,) the bucket counts."""
     for h in range(fill.shape[0]):
         fill[h] = 0
     for item in range(lo.shape[0]):
         lower, upper = item_box(positions, row, triangles, edges, item, dtype)
-        lo[item] = cell_of(lower - q, cell)
-        hi[item] = cell_of(upper + q, cell)
+        box_lo[item] = lower - q
+        box_hi[item] = upper + q
+        lo[item] = cell_of(box_lo[item], cell)
+        hi[item] = cell_of(box_hi[item], cell)
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
                                   (lo[item][2], hi[item][2] + 1)):
             ti.atomic_add(fill[cell_hash(ti.Vector([i, j, k]), mask)], 1)
 
 
 @ti.kernel
-def exclusive_scan(counts: ti.types.ndarray(), starts: ti.types.ndarray(), n: ti.i32) -> ti.i32:
-    """starts[i] = counts[0] + ... + counts[i-1] for i <= n (one thread: n is at most a few million)."""
-    starts[0] = 0
+def exclusive_scan(counts: ti.types.ndarray(), starts: ti.types.ndarray(), n: ti.i32, chunk: ti.i32,
+                   partial: ti.types.ndarray()) -> ti.i32:
+    """starts[i] = counts[0] + ... + counts[i-1] for i <= n; returns starts[n]. In three passes of about
+    sqrt(n) serial steps each: chunks of `chunk` counts summed in parallel, the chunk sums prefix-summed
+    serially (partial (n / chunk + 1,) holds them), then every entry offset by its chunk's start."""
+    n_chunks = (n + chunk - 1) // chunk
+    for c in range(n_chunks):
+        total = 0
+        for i in range(c * chunk, ti.min((c + 1) * chunk, n)):
+            total += counts[i]
+            starts[i + 1] = total
+        partial[c] = total
+    running = 0
     ti.loop_config(serialize=True)
+    for c in range(n_chunks):
+        total = partial[c]
+        partial[c] = running
+        running += total
     for i in range(n):
-        starts[i + 1] = starts[i] + counts[i]
-    return starts[n]
+        starts[i + 1] += partial[i // chunk]
+    starts[0] = 0
+    return running
 
 
 @ti.func
@@ -152,82 +172,107 @@ def first_in_bucket(entries: ti.template(), begin, e):
     return first
 
 
+@ti.func
+def first_above(entries: ti.template(), begin, end, item):
+    """The first e in [begin, end) with entries[e] > item in a sorted bucket (binary search); end if none."""
+    a = begin
+    b = end
+    while a < b:
+        m = (a + b) // 2
+        if entries[m] <= item:
+            a = m + 1
+        else:
+            b = m
+    return a
+
+
 @ti.kernel
 def find_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
-               free: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
-               starts: ti.types.ndarray(), entries: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
-               n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
+               free: ti.types.ndarray(), box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(),
+               lo: ti.types.ndarray(), hi: ti.types.ndarray(), starts: ti.types.ndarray(),
+               entries: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
                query_count: ti.types.ndarray(), query_start: ti.types.ndarray(), kind: ti.types.ndarray(),
                pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
                q: ti.f64, cell: ti.f64, mask: ti.i32, self_contact: ti.i32, rest_mode: ti.i32,
                write: ti.template(), dtype: ti.template()):
-    """Queries 0..V-1 are the surface vertices (against the triangles in their cell), V..V+E-1 the edges
-    (against the edges of higher index whose grown range meets theirs, in the lowest shared cell).
+    """Queries 0..V-1 are the surface vertices (against the triangles in their cell whose grown box holds
+    them), V..V+E-1 the edges (against the edges of higher index whose grown box meets theirs, in the
+    lowest cell the two ranges share).
     Without `write`: query_count[query] = its number of pairs. With `write`: its pairs go to
     kind/pair/primitives (vertex, triangle or edge, edge)/distance from query_start[query] on."""
     n_vertices = vertices.shape[0]
     n_triangles = triangles.shape[0]
     n_edges = edges.shape[0]
-    for query in range(n_vertices + n_edges):
+    for query in range(n_vertices):
         found = 0
         slot = 0
         if ti.static(write):
             slot = query_start[query]
-        if query < n_vertices:
-            v = vertices[query]
-            p = positions[row, v]
-            c = cell_of(p, cell)
+        v = vertices[query]
+        p = positions[row, v]
+        c = cell_of(p, cell)
+        h = cell_hash(c, mask)
+        for e in range(starts[h], starts[h + 1]):
+            item = entries[e]
+            if item >= n_triangles:         # the triangles come first in a bucket, then the edges
+                break
+            if first_in_bucket(entries, starts[h], e):
+                t = triangles[item]
+                inside = (box_lo[item] <= p).all() and (p <= box_hi[item]).all()
+                if inside and v != t[0] and v != t[1] and v != t[2]:
+                    n_free = free[v] + free[t[0]] + free[t[1]] + free[t[2]]
+                    key = ti.cast(v, ti.i64) * n_triangles + item
+                    if admissible(body[v] == body[t[0]], n_free, excluded_vt, n_excluded_vt, key,
+                                  self_contact, rest_mode):
+                        d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
+                                              positions[row, t[2]], dtype)
+                        if d < q:
+                            if ti.static(write):
+                                kind[slot + found] = int(PairKind.VERTEX_TRIANGLE)
+                                pair[slot + found] = ti.Vector([v, t[0], t[1], t[2]])
+                                primitives[slot + found] = ti.Vector([v, item])
+                                distance[slot + found] = d
+                            found += 1
+        if ti.static(not write):
+            query_count[query] = found
+    for a in range(n_edges):
+        query = n_vertices + a
+        found = 0
+        slot = 0
+        if ti.static(write):
+            slot = query_start[query]
+        ea = edges[a]
+        pa0 = positions[row, ea[0]]
+        pa1 = positions[row, ea[1]]
+        lower = ti.min(pa0, pa1)
+        upper = ti.max(pa0, pa1)
+        lo_a = cell_of(lower, cell)
+        hi_a = cell_of(upper, cell)
+        for i, j, k in ti.ndrange((lo_a[0], hi_a[0] + 1), (lo_a[1], hi_a[1] + 1), (lo_a[2], hi_a[2] + 1)):
+            c = ti.Vector([i, j, k])
             h = cell_hash(c, mask)
-            for e in range(starts[h], starts[h + 1]):
+            for e in range(first_above(entries, starts[h], starts[h + 1], n_triangles + a), starts[h + 1]):
                 item = entries[e]
-                if item < n_triangles and first_in_bucket(entries, starts[h], e):
-                    t = triangles[item]
-                    covers = (lo[item] <= c).all() and (c <= hi[item]).all()
-                    if covers and v != t[0] and v != t[1] and v != t[2]:
-                        n_free = free[v] + free[t[0]] + free[t[1]] + free[t[2]]
-                        key = ti.cast(v, ti.i64) * n_triangles + item
-                        if admissible(body[v] == body[t[0]], n_free, excluded_vt, n_excluded_vt, key,
+                b = item - n_triangles
+                if first_in_bucket(entries, starts[h], e):
+                    lowest = ti.max(lo_a, lo[item])
+                    eb = edges[b]
+                    overlap = (lower <= box_hi[item]).all() and (box_lo[item] <= upper).all()
+                    disjoint = ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]
+                    if overlap and (lowest == c).all() and disjoint:
+                        n_free = free[ea[0]] + free[ea[1]] + free[eb[0]] + free[eb[1]]
+                        key = ti.cast(a, ti.i64) * n_edges + b
+                        if admissible(body[ea[0]] == body[eb[0]], n_free, excluded_ee, n_excluded_ee, key,
                                       self_contact, rest_mode):
-                            d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
-                                                  positions[row, t[2]], dtype)
+                            d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
                             if d < q:
                                 if ti.static(write):
-                                    kind[slot + found] = int(PairKind.VERTEX_TRIANGLE)
-                                    pair[slot + found] = ti.Vector([v, t[0], t[1], t[2]])
-                                    primitives[slot + found] = ti.Vector([v, item])
+                                    kind[slot + found] = int(PairKind.EDGE_EDGE)
+                                    pair[slot + found] = ti.Vector([ea[0], ea[1], eb[0], eb[1]])
+                                    primitives[slot + found] = ti.Vector([a, b])
                                     distance[slot + found] = d
                                 found += 1
-        else:
-            a = query - n_vertices
-            ea = edges[a]
-            pa0 = positions[row, ea[0]]
-            pa1 = positions[row, ea[1]]
-            lo_a = cell_of(ti.min(pa0, pa1), cell)
-            hi_a = cell_of(ti.max(pa0, pa1), cell)
-            for i, j, k in ti.ndrange((lo_a[0], hi_a[0] + 1), (lo_a[1], hi_a[1] + 1), (lo_a[2], hi_a[2] + 1)):
-                c = ti.Vector([i, j, k])
-                h = cell_hash(c, mask)
-                for e in range(starts[h], starts[h + 1]):
-                    item = entries[e]
-                    b = item - n_triangles
-                    if b > a and first_in_bucket(entries, starts[h], e):
-                        lowest = ti.max(lo_a, lo[item])
-                        eb = edges[b]
-                        if (lowest == c).all() and (lowest <= ti.min(hi_a, hi[item])).all() \
-                                and ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]:
-                            n_free = free[ea[0]] + free[ea[1]] + free[eb[0]] + free[eb[1]]
-                            key = ti.cast(a, ti.i64) * n_edges + b
-                            if admissible(body[ea[0]] == body[eb[0]], n_free, excluded_ee, n_excluded_ee, key,
-                                          self_contact, rest_mode):
-                                d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
-                                if d < q:
-                                    if ti.static(write):
-                                        kind[slot + found] = int(PairKind.EDGE_EDGE)
-                                        pair[slot + found] = ti.Vector([ea[0], ea[1], eb[0], eb[1]])
-                                        primitives[slot + found] = ti.Vector([a, b])
-                                        distance[slot + found] = d
-                                    found += 1
         if ti.static(not write):
             query_count[query] = found
 
@@ -294,6 +339,8 @@ class ContactDetector:
         self._triangles.from_numpy(self.surface.triangles)
         self._body = _device(self.bodies, ti.i32)
         self._free = _device(np.asarray(free, dtype=np.int32), ti.i32)
+        self._box_lo = ti.Vector.ndarray(3, dtype, T + E)
+        self._box_hi = ti.Vector.ndarray(3, dtype, T + E)
         self._lo = ti.Vector.ndarray(3, ti.i32, T + E)
         self._hi = ti.Vector.ndarray(3, ti.i32, T + E)
         self._bucket_fill = ti.ndarray(ti.i32, buckets)
@@ -302,6 +349,9 @@ class ContactDetector:
         self._query_count = ti.ndarray(ti.i32, V + E)
         self._query_start = ti.ndarray(ti.i32, V + E + 1)
         self._vertex_fill = ti.ndarray(ti.i32, n)
+        longest = max(buckets, V + E, n)
+        self._chunk = max(64, int(np.sqrt(longest)))
+        self._partial = ti.ndarray(ti.i32, longest // self._chunk + 1)
         self.incidence_offsets = ti.ndarray(ti.i32, n + 1)
         self.bound = ti.ndarray(dtype, n)
         self._allocate_pairs(max(64, V))
@@ -331,23 +381,27 @@ class ContactDetector:
     def _find(self, positions, row: int, rest_mode: bool):
         """Steps 1-3 of the module docstring: the grid, then the pairs, counted and then written."""
         q, V, E = self.contact.query_radius, len(self.surface.vertices), len(self.surface.edges)
-        cell_ranges(positions, row, self._triangles, self._edges, q, self.cell, self._lo, self._hi,
-                    self._bucket_fill, self._mask, self.dtype)
-        n_entries = exclusive_scan(self._bucket_fill, self._bucket_start, self._mask + 1)
+        cell_ranges(positions, row, self._triangles, self._edges, q, self.cell, self._box_lo, self._box_hi,
+                    self._lo, self._hi, self._bucket_fill, self._mask, self.dtype)
+        n_entries = self._scan(self._bucket_fill, self._bucket_start, self._mask + 1)
         if n_entries > self._entries.shape[0]:
             self._entries = ti.ndarray(ti.i32, 2 * n_entries)
         scatter_items(self._lo, self._hi, self._bucket_start, self._bucket_fill, self._entries, self._mask)
-        args = (self._vertices, self._edges, self._triangles, self._body, self._free, self._lo, self._hi,
+        args = (self._vertices, self._edges, self._triangles, self._body, self._free, self._box_lo,
+                self._box_hi, self._lo, self._hi,
                 self._bucket_start, self._entries, self._excluded_vt, self._n_excluded[0], self._excluded_ee,
                 self._n_excluded[1], self._query_count, self._query_start)
         flags = (q, self.cell, self._mask, int(self.contact.self_contact), int(rest_mode))
         find_pairs(positions, row, *args, self.kind, self.pair, self.primitives, self.distance, *flags, False,
                    self.dtype)
-        self.n_pairs = exclusive_scan(self._query_count, self._query_start, V + E)
+        self.n_pairs = self._scan(self._query_count, self._query_start, V + E)
         if self.n_pairs > self._capacity:
             self._allocate_pairs(2 * self.n_pairs)
         find_pairs(positions, row, *args, self.kind, self.pair, self.primitives, self.distance, *flags, True,
                    self.dtype)
+
+    def _scan(self, counts, starts, n: int) -> int:
+        return exclusive_scan(counts, starts, n, self._chunk, self._partial)
 
     def detect(self, positions, row: int = 0) -> int:
         """Find the pairs at x = positions[row] ((rows, N) ndarray of 3-vectors), their incidence lists
@@ -355,7 +409,7 @@ class ContactDetector:
         self._find(positions, row, rest_mode=False)
         n = self.bodies.shape[0]
         count_incidence(self.pair, self.n_pairs, self._vertex_fill)
-        exclusive_scan(self._vertex_fill, self.incidence_offsets, n)
+        self._scan(self._vertex_fill, self.incidence_offsets, n)
         scatter_incidence(self.pair, self.n_pairs, self.incidence_offsets, self._vertex_fill, self.incidence,
                           self.distance, self.contact.query_radius, self.contact.bound_relaxation, self.bound)
         return self.n_pairs
