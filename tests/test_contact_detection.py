@@ -163,3 +163,23 @@ def test_exclusive_scan_is_the_cumulative_sum(n, chunk):
     want = np.concatenate([[0], np.cumsum(counts[:n])])
     assert total == want[-1]
     np.testing.assert_array_equal(starts.to_numpy()[:n + 1], want)
+
+
+def test_float32_positions_give_the_same_pairs():
+    solver.ensure_taichi()
+    rng = np.random.default_rng(4)
+    mesh = _scene(rng)
+    contact = solver.Contact(radius=0.01, query_radius=0.04)
+    x = mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape)
+    found = {}
+    for dtype, np_type in ((ti.f64, np.float64), (ti.f32, np.float32)):
+        detector = ContactDetector(mesh, np.ones(mesh.n_vertices, bool), contact, dtype=dtype)
+        positions = ti.Vector.ndarray(3, dtype, (1, len(x)))
+        positions.from_numpy(x[None].astype(np_type))
+        detector.detect(positions)
+        kind, _, primitives, distance = detector.pairs()
+        found[dtype] = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
+    borderline = {key for key, d in found[ti.f64].items() if abs(d - contact.query_radius) < 1e-5}
+    assert found[ti.f64].keys() - borderline == found[ti.f32].keys() - borderline
+    for key in found[ti.f32].keys() - borderline:
+        assert found[ti.f32][key] == pytest.approx(found[ti.f64][key], rel=1e-4, abs=1e-6)

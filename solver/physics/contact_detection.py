@@ -72,8 +72,8 @@ def cell_ranges(positions: ti.types.ndarray(), row: ti.i32, triangles: ti.types.
         fill[h] = 0
     for item in range(lo.shape[0]):
         lower, upper = item_box(positions, row, triangles, edges, item, dtype)
-        box_lo[item] = lower - q
-        box_hi[item] = upper + q
+        box_lo[item] = ti.cast(lower - q, dtype)
+        box_hi[item] = ti.cast(upper + q, dtype)
         lo[item] = cell_of(box_lo[item], cell)
         hi[item] = cell_of(box_hi[item], cell)
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
@@ -290,7 +290,7 @@ def count_incidence(pair: ti.types.ndarray(), n_pairs: ti.i32, fill: ti.types.nd
 @ti.kernel
 def scatter_incidence(pair: ti.types.ndarray(), n_pairs: ti.i32, offsets: ti.types.ndarray(),
                       fill: ti.types.ndarray(), incidence: ti.types.ndarray(), distance: ti.types.ndarray(),
-                      q: ti.f64, g: ti.f64, bound: ti.types.ndarray()):
+                      q: ti.f64, g: ti.f64, bound: ti.types.ndarray(), dtype: ti.template()):
     """incidence[offsets[v]:offsets[v + 1]]: the pairs of vertex v, ascending; bound[v] = g min(q, their
     least distance)."""
     for v in range(fill.shape[0]):
@@ -304,7 +304,7 @@ def scatter_incidence(pair: ti.types.ndarray(), n_pairs: ti.i32, offsets: ti.typ
         nearest = q
         for s in range(offsets[v], offsets[v + 1]):
             nearest = ti.min(nearest, distance[incidence[s]])
-        bound[v] = g * nearest
+        bound[v] = ti.cast(g * nearest, dtype)
 
 
 class ContactDetector:
@@ -361,7 +361,7 @@ class ContactDetector:
         self._n_excluded = (0, 0)
         if contact.self_contact:
             rest = ti.Vector.ndarray(3, dtype, (1, n))
-            rest.from_numpy(mesh.vertices[None])
+            rest.from_numpy(mesh.vertices[None].astype(np.float32 if dtype == ti.f32 else np.float64))
             self._find(rest, 0, rest_mode=True)
             kind, _, primitives, _ = self.pairs()
             keys = [np.unique(primitives[kind == k, 0].astype(np.int64) * size + primitives[kind == k, 1])
@@ -411,7 +411,8 @@ class ContactDetector:
         count_incidence(self.pair, self.n_pairs, self._vertex_fill)
         self._scan(self._vertex_fill, self.incidence_offsets, n)
         scatter_incidence(self.pair, self.n_pairs, self.incidence_offsets, self._vertex_fill, self.incidence,
-                          self.distance, self.contact.query_radius, self.contact.bound_relaxation, self.bound)
+                          self.distance, self.contact.query_radius, self.contact.bound_relaxation, self.bound,
+                          self.dtype)
         return self.n_pairs
 
     def pairs(self):
