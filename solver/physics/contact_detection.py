@@ -329,7 +329,7 @@ class ContactDetector:
         n = mesh.n_vertices
         V, E, T = len(self.surface.vertices), len(self.surface.edges), len(self.surface.triangles)
         edge_lengths = np.linalg.norm(np.diff(mesh.vertices[self.surface.edges], axis=1)[:, 0], axis=1)
-        self.cell = float(edge_lengths.mean() + 2 * contact.query_radius)
+        self.cell = float(max(edge_lengths.mean(), 2 * contact.query_radius))   # grid cell edge in m
         buckets = 1 << int(np.ceil(np.log2(BUCKETS_PER_ITEM * (T + E))))
         self._mask = buckets - 1
         self._vertices = _device(self.surface.vertices, ti.i32)
