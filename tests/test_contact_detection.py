@@ -125,7 +125,7 @@ def test_pairs_of_fixed_vertices_only_are_skipped():
 
 
 def test_numpy_twin_finds_the_same_pairs_and_exclusions():
-    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np, vertex_bounds_np
 
     solver.ensure_taichi()
     rng = np.random.default_rng(21)
@@ -146,6 +146,8 @@ def test_numpy_twin_finds_the_same_pairs_and_exclusions():
         got = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind_t, primitives_t, distance_t)}
         want = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
         assert got.keys() == want.keys() and len(want) == len(kind) > 0
+        np.testing.assert_allclose(vertex_bounds_np(mesh.n_vertices, vertices, distance, contact),
+                                   detector.bound.to_numpy(), rtol=1e-10)
         np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
 
 

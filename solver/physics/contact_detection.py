@@ -191,7 +191,8 @@ def find_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.nd
                edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
                free: ti.types.ndarray(), box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(),
                lo: ti.types.ndarray(), hi: ti.types.ndarray(), starts: ti.types.ndarray(),
-               entries: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
+               entries: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), n_excluded_vt: ti.i32,
+               excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
                query_count: ti.types.ndarray(), query_start: ti.types.ndarray(), kind: ti.types.ndarray(),
                pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
                q: ti.f64, cell: ti.f64, mask: ti.i32, self_contact: ti.i32, rest_mode: ti.i32,
@@ -497,3 +498,11 @@ def rest_exclusions_np(rest: np.ndarray, surface, bodies: np.ndarray, contact: C
     sizes = (len(surface.triangles), len(surface.edges))
     return tuple(np.unique(primitives[kind == k, 0].astype(np.int64) * size + primitives[kind == k, 1])
                  for k, size in zip(PairKind, sizes))
+
+
+def vertex_bounds_np(n_vertices: int, vertices: np.ndarray, distance: np.ndarray, contact: Contact) -> np.ndarray:
+    """(N,) b_v = bound_relaxation min(query_radius, distance of v's closest pair) in m, from the pairs'
+    vertices (P, 4) and distances (P,): how far each vertex may move before the next detection."""
+    nearest = np.full(n_vertices, contact.query_radius)
+    np.minimum.at(nearest, np.asarray(vertices).ravel(), np.repeat(distance, 4))
+    return contact.bound_relaxation * nearest
