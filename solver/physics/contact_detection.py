@@ -389,9 +389,8 @@ class ContactDetector:
             self._entries = ti.ndarray(ti.i32, 2 * n_entries)
         scatter_items(self._lo, self._hi, self._bucket_start, self._bucket_fill, self._entries, self._mask)
         args = (self._vertices, self._edges, self._triangles, self._body, self._free, self._box_lo,
-                self._box_hi, self._lo, self._hi,
-                self._bucket_start, self._entries, self._excluded_vt, self._n_excluded[0], self._excluded_ee,
-                self._n_excluded[1], self._query_count, self._query_start)
+                self._box_hi, self._lo, self._hi, self._bucket_start, self._entries, self._excluded_vt,
+                self._n_excluded[0], self._excluded_ee, self._n_excluded[1], self._query_count, self._query_start)
         flags = (q, self.cell, self._mask, int(self.contact.self_contact), int(rest_mode))
         find_pairs(positions, row, *args, self.kind, self.pair, self.primitives, self.distance, *flags, False,
                    self.dtype)
