@@ -9,7 +9,9 @@ Importing this package does not initialise Taichi; `Simulation` does that on fir
     sim.step()
 """
 from .backend import Precision, ensure_taichi
+from .mesh.bodies import merge_meshes
 from .mesh.coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
+from .physics.contact import Contact
 from .physics.ground import Ground
 from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
 from .newton.direct import LinearSolver, fast_newton_solve
@@ -25,10 +27,10 @@ from .mesh.tetrahedralize import Mesher
 from .mesh.topology import Topology
 
 __all__ = [
-    "Coloring", "ConfigError", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
+    "Coloring", "ConfigError", "Contact", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
     "MeshError", "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "Method", "NewtonResult",
     "Precision", "Preconditioner", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder",
     "boundary_faces", "box_mesh", "color_vertices", "det_F", "ensure_taichi", "fast_newton_solve",
-    "inverted_count", "is_valid_coloring", "load_mesh", "newton_pcg", "newton_solve", "relative_energy_gap",
-    "relative_error", "save_mesh", "sliver_box_mesh",
+    "inverted_count", "is_valid_coloring", "load_mesh", "merge_meshes", "newton_pcg", "newton_solve",
+    "relative_energy_gap", "relative_error", "save_mesh", "sliver_box_mesh",
 ]

@@ -44,12 +44,22 @@ class Ground:
 
 
 @ti.func
+def friction_scale(s, eps_u):
+    """f1(s)/s of IPC's smoothed Coulomb friction at tangential displacement s (m), in 1/m:
+    (2 - s/eps_u)/eps_u below eps_u, 1/s above; friction force = -mu_f f_n f1(s)/s u_t."""
+    scale = (2 - s / eps_u) / eps_u
+    if s >= eps_u:
+        scale = 1 / s
+    return scale
+
+
+@ti.func
 def ground_force_hessian(x_i, u, h, height, k_c, mu_f, friction_speed, dtype: ti.template()):
     """Contact force f (3,) and Hessian H (3x3) on a vertex at x_i that moved u = x_i - x_n,i this step.
 
     Penalty: f_z = k_c d, H_zz = k_c for depth d > 0. Friction (mu_f > 0): f = -k_f u_t with the
-    tangential displacement u_t and k_f = mu_f k_c d f1(s)/s, s = |u_t|, eps_u = friction_speed h,
-    f1(s)/s = (2 - s/eps_u)/eps_u below eps_u and 1/s above (IPC's smoothed Coulomb friction).
+    tangential displacement u_t and k_f = mu_f k_c d f1(s)/s (`friction_scale`), s = |u_t|,
+    eps_u = friction_speed h.
     """
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
@@ -59,12 +69,7 @@ def ground_force_hessian(x_i, u, h, height, k_c, mu_f, friction_speed, dtype: ti
         H[2, 2] = k_c
         if mu_f > 0:
             u_t = ti.Vector([u[0], u[1], 0.0], dt=dtype)
-            s = u_t.norm()
-            eps_u = friction_speed * h
-            scale = (2 - s / eps_u) / eps_u
-            if s >= eps_u:
-                scale = 1 / s
-            k_f = ti.cast(mu_f * k_c * depth * scale, dtype)
+            k_f = ti.cast(mu_f * k_c * depth * friction_scale(u_t.norm(), friction_speed * h), dtype)
             f -= k_f * u_t
             H[0, 0] += k_f
             H[1, 1] += k_f

@@ -1,0 +1,187 @@
+"""Contact detection (solver/physics/contact_detection.py): the hashed grid finds exactly the pairs a
+brute-force numpy search finds, with their incidence lists and bounds, deterministically."""
+import numpy as np
+import pytest
+
+import solver
+from solver._ti import ti
+from solver.mesh.bodies import body_labels
+from solver.mesh.surface import surface_primitives
+from solver.physics.contact import PairKind, edge_edge_np, point_triangle_np
+from solver.physics.contact_detection import ContactDetector
+
+VT, EE = int(PairKind.VERTEX_TRIANGLE), int(PairKind.EDGE_EDGE)
+
+
+def brute_force_pairs(mesh, x, free, contact):
+    """{(kind, primitive, primitive): distance} of every pair of the model, by trying all of them."""
+    surface = surface_primitives(mesh.tets)
+    body = body_labels(mesh.tets, mesh.n_vertices)
+    q = contact.query_radius
+    found = {}
+    V, T = np.meshgrid(surface.vertices, np.arange(len(surface.triangles)), indexing="ij")
+    V, T = V.ravel(), T.ravel()
+    tri = surface.triangles[T]
+    vt_sets = [(V, T, V[:, None], tri, lambda y: point_triangle_np(y[V], *(y[tri[:, k]] for k in range(3)))[0])]
+    A, B = np.triu_indices(len(surface.edges), k=1)
+    ea, eb = surface.edges[A], surface.edges[B]
+    ee_sets = [(A, B, ea, eb, lambda y: edge_edge_np(y[ea[:, 0]], y[ea[:, 1]], y[eb[:, 0]], y[eb[:, 1]])[0])]
+    for kind, (P0, P1, left, right, dist) in [(VT, vt_sets[0]), (EE, ee_sets[0])]:
+        disjoint = ~(left[:, :, None] == right[:, None, :]).any(axis=(1, 2))
+        same = body[left[:, 0]] == body[right[:, 0]]
+        some_free = free[left].any(axis=1) | free[right].any(axis=1)
+        keep = disjoint & some_free & (~same | (contact.self_contact & (dist(mesh.vertices) >= q)))
+        d = dist(x)
+        for i in np.flatnonzero(keep & (d < q)):
+            found[(kind, int(P0[i]), int(P1[i]))] = d[i]
+    return found
+
+
+def _scene(rng, n_bodies=3):
+    """Bodies of a few tets each, turned and placed at random in a small box, then shaken vertex by vertex."""
+    mesh = solver.box_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1))
+    placed = []
+    for _ in range(n_bodies):
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        Q *= np.sign(np.linalg.det(Q))
+        placed.append(solver.TetMesh((mesh.vertices - 0.05) @ Q.T + rng.uniform(0, 0.15, 3), mesh.tets))
+    return solver.merge_meshes(placed)
+
+
+def _positions(x):
+    array = ti.Vector.ndarray(3, ti.f64, (1, len(x)))
+    array.from_numpy(x[None])
+    return array
+
+
+@pytest.mark.parametrize("setting", ["default", "no_self", "fixed_body", "wide_query", "colliding_hash"])
+def test_hash_grid_gives_the_brute_force_pairs_on_random_configurations(setting):
+    solver.ensure_taichi()
+    rng = np.random.default_rng(["default", "no_self", "fixed_body", "wide_query", "colliding_hash"].index(setting))
+    mesh = _scene(rng)
+    contact = solver.Contact(radius=0.01, query_radius=0.09 if setting == "wide_query" else 0.04,
+                             self_contact=setting != "no_self")
+    free = np.ones(mesh.n_vertices, dtype=bool)
+    if setting == "fixed_body":
+        free[body_labels(mesh.tets, mesh.n_vertices) == 1] = False
+    detector = ContactDetector(mesh, free, contact)
+    if setting == "colliding_hash":       # eight buckets: every bucket holds items of many cells
+        detector._mask = 7
+        detector._bucket_fill, detector._bucket_start = ti.ndarray(ti.i32, 8), ti.ndarray(ti.i32, 9)
+    if setting == "wide_query":
+        assert sum(detector._n_excluded) > 0      # rest neighbours closer than q are excluded
+    self_pairs = 0
+    for _ in range(20):
+        x = mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape)
+        n = detector.detect(_positions(x))
+        kind, vertices, primitives, distance = detector.pairs()
+        got = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
+        want = brute_force_pairs(mesh, x, free, contact)
+        assert len(got) == n                       # no pair twice
+        assert got.keys() == want.keys()
+        np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
+        body = detector.bodies
+        self_pairs += int((body[vertices[:, 0]] == body[vertices[:, 3]]).sum())
+        # incidence lists: vertex v lists exactly the pairs it belongs to, ascending; bounds from them
+        offsets, ids = detector.vertex_pairs()
+        bound = detector.bound.to_numpy()
+        for v in range(mesh.n_vertices):
+            mine = ids[offsets[v]:offsets[v + 1]]
+            np.testing.assert_array_equal(mine, np.flatnonzero((vertices == v).any(axis=1)))
+            nearest = min([contact.query_radius] + list(distance[mine]))
+            assert bound[v] == pytest.approx(contact.bound_relaxation * nearest, rel=1e-12)
+    if setting != "no_self":
+        assert self_pairs > 0
+
+
+def test_detection_is_deterministic_and_buffers_grow_without_dropping_pairs():
+    solver.ensure_taichi()
+    rng = np.random.default_rng(9)
+    mesh = _scene(rng, n_bodies=4)
+    contact = solver.Contact(radius=0.01, query_radius=0.05)
+    detector = ContactDetector(mesh, np.ones(mesh.n_vertices, dtype=bool), contact)
+    detector._allocate_pairs(1)                 # far too small: the detection must grow it
+    x = _positions(mesh.vertices + rng.normal(0, 0.01, mesh.vertices.shape))
+    n = detector.detect(x)
+    assert n > 1 and detector._capacity >= n
+    first = [a.copy() for a in detector.pairs()] + [a.copy() for a in detector.vertex_pairs()]
+    capacity = detector._capacity
+    for _ in range(3):
+        assert detector.detect(x) == n
+        again = list(detector.pairs()) + list(detector.vertex_pairs())
+        for a, b in zip(first, again):
+            np.testing.assert_array_equal(a, b)
+    assert detector._capacity == capacity       # nothing allocated when nothing grows
+
+
+def test_pairs_of_fixed_vertices_only_are_skipped():
+    solver.ensure_taichi()
+    a = solver.box_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1))
+    mesh = solver.merge_meshes([a, solver.TetMesh(a.vertices + [0, 0, 0.11], a.tets)])
+    contact = solver.Contact(radius=0.01, query_radius=0.03)
+    x = _positions(mesh.vertices)
+    assert ContactDetector(mesh, np.ones(mesh.n_vertices, bool), contact).detect(x) > 0
+    assert ContactDetector(mesh, np.zeros(mesh.n_vertices, bool), contact).detect(x) == 0
+
+
+def test_numpy_twin_finds_the_same_pairs_and_exclusions():
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np, vertex_bounds_np
+
+    solver.ensure_taichi()
+    rng = np.random.default_rng(21)
+    mesh = _scene(rng, n_bodies=4)
+    contact = solver.Contact(radius=0.01, query_radius=0.08)
+    free = rng.uniform(size=mesh.n_vertices) < 0.7
+    detector = ContactDetector(mesh, free, contact)
+    excluded = rest_exclusions_np(mesh.vertices, detector.surface, detector.bodies, contact)
+    n_vt, n_ee = detector._n_excluded
+    np.testing.assert_array_equal(excluded[0], detector._excluded_vt.to_numpy()[:n_vt])
+    np.testing.assert_array_equal(excluded[1], detector._excluded_ee.to_numpy()[:n_ee])
+    for _ in range(10):
+        x = mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape)
+        detector.detect(_positions(x))
+        kind, vertices, primitives, distance = find_pairs_np(x, detector.surface, detector.bodies, free, contact,
+                                                             excluded)
+        kind_t, _, primitives_t, distance_t = detector.pairs()
+        got = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind_t, primitives_t, distance_t)}
+        want = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
+        assert got.keys() == want.keys() and len(want) == len(kind) > 0
+        np.testing.assert_allclose(vertex_bounds_np(mesh.n_vertices, vertices, distance, contact),
+                                   detector.bound.to_numpy(), rtol=1e-10)
+        np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("n,chunk", [(0, 64), (1, 64), (63, 64), (64, 64), (1000, 64), (4097, 100)])
+def test_exclusive_scan_is_the_cumulative_sum(n, chunk):
+    from solver.physics.contact_detection import exclusive_scan
+
+    solver.ensure_taichi()
+    counts = np.random.default_rng(n).integers(0, 9, max(n, 1)).astype(np.int32)
+    device_counts = ti.ndarray(ti.i32, len(counts))
+    device_counts.from_numpy(counts)
+    starts = ti.ndarray(ti.i32, len(counts) + 1)
+    partial = ti.ndarray(ti.i32, len(counts) // chunk + 1)
+    total = exclusive_scan(device_counts, starts, n, chunk, partial)
+    want = np.concatenate([[0], np.cumsum(counts[:n])])
+    assert total == want[-1]
+    np.testing.assert_array_equal(starts.to_numpy()[:n + 1], want)
+
+
+def test_float32_positions_give_the_same_pairs():
+    solver.ensure_taichi()
+    rng = np.random.default_rng(4)
+    mesh = _scene(rng)
+    contact = solver.Contact(radius=0.01, query_radius=0.04)
+    x = mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape)
+    found = {}
+    for dtype, np_type in ((ti.f64, np.float64), (ti.f32, np.float32)):
+        detector = ContactDetector(mesh, np.ones(mesh.n_vertices, bool), contact, dtype=dtype)
+        positions = ti.Vector.ndarray(3, dtype, (1, len(x)))
+        positions.from_numpy(x[None].astype(np_type))
+        detector.detect(positions)
+        kind, _, primitives, distance = detector.pairs()
+        found[dtype] = {(int(k), int(a), int(b)): d for k, (a, b), d in zip(kind, primitives, distance)}
+    borderline = {key for key, d in found[ti.f64].items() if abs(d - contact.query_radius) < 1e-5}
+    assert found[ti.f64].keys() - borderline == found[ti.f32].keys() - borderline
+    for key in found[ti.f32].keys() - borderline:
+        assert found[ti.f32][key] == pytest.approx(found[ti.f64][key], rel=1e-4, abs=1e-6)
