@@ -17,7 +17,8 @@ from .physics.material import Material
 from .mesh.tetmesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
 from .method import Method
 from .metrics import relative_energy_gap, relative_error
-from .newton.oracle import NewtonResult, StepProblem, newton_solve
+from .newton.damped_newton import NewtonResult
+from .newton.oracle import StepProblem, newton_solve
 from .newton.pcg import Preconditioner, newton_pcg
 from .mesh.quality import MeshQuality, det_F, inverted_count
 from .vbd.simulation import InitialGuess, IterationRecord, Simulation
