@@ -24,7 +24,6 @@ import numpy as np
 
 from . import energy as energy_kernels
 from . import global_methods, implicit_euler, orientation, translation, vertex_solve
-from . import layout as L
 from ..backend import as_precision, ensure_taichi
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
 from ..errors import ConfigError, VBDError, enum_value
@@ -417,9 +416,10 @@ def _live(name: str) -> property:
     def set(self, value):
         self.settings = replace(self._settings, **{name: value})
 
-    return property(get, set, doc=f"The live setting `Settings.{name}` (assigning goes through `settings`).")
+    return property(get, set, doc=f"The live setting `Settings.{name}` (its meaning per method: `vbd/settings.py`); "
+                                  "assigning it replaces `settings`, validated and checked against the method.")
 
 
-for _field in fields(Settings):
+for _field in fields(Settings):      # sim.dt, sim.iterations, ...: one property per field of Settings
     if _field.name != "gravity":
         setattr(Simulation, _field.name, _live(_field.name))
