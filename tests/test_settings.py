@@ -33,7 +33,8 @@ def _shifted(t, rest):
     return rest + np.array([0.0, 0.0, 0.3 * t])
 
 
-# setting: (constructor arguments of both runs, the live assignment, methods that refuse it, set-up)
+# setting: (constructor arguments of both runs, the live assignment, methods that refuse it, set-up);
+# every field of solver.Settings has a row, and the material
 CASES = {
     "dt": (dict(iterations=4), dict(dt=1 / 30), set(), None),
     "gravity": (dict(iterations=4), dict(gravity=(0.0, -9.81, 0.0)), set(), None),
@@ -51,8 +52,14 @@ CASES = {
     "kinematic_motion": (dict(iterations=4, fixed=None, kinematic=FIXED, kinematic_motion=lambda t, rest: rest),
                          dict(kinematic_motion=_shifted), set(), None),
     "record_history": (dict(iterations=4), dict(record_history=True), set(), None),
+    "material": (dict(iterations=4), dict(material=solver.Material(3e5, 0.3, 1000.0)), set(), None),
 }
 METHODS = ["vbd", "newton", "pcg", "multilevel", "auto"]
+
+
+def test_the_table_covers_every_setting():
+    names = {name for change in (case[1] for case in CASES.values()) for name in change}
+    assert names == {field.name for field in dataclasses.fields(solver.Settings)} | {"material"}
 
 
 def _simulation(method, kwargs):
