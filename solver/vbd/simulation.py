@@ -144,9 +144,8 @@ class Simulation(SimulationState):
         self.topology: Topology = build_topology(mesh.vertices, mesh.tets,
                                                  np.where(self.free_mask, self.coloring.colors, -1))
         self._allocate()
-        self._settings = settings
-        self._gravity = np.array(settings.gravity)
-        self._gravity.flags.writeable = False
+        self._material = material
+        self.settings = settings
         self.set_material(material)
         self._two_level = None          # the two-level cycle of method="multilevel", built at the first step
         self.history: list[IterationRecord] = []
