@@ -18,6 +18,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+REFERENCE_TOLERANCE = 1e-10     # default step_tolerance of a reference solve: x* to about ten digits
 ARMIJO_C = 1e-4                 # sufficient decrease: G(x + alpha d) <= G + ARMIJO_C alpha g.d
 BACKTRACK = 0.5                 # alpha <- BACKTRACK alpha after a rejected trial step
 SMALLEST_ALPHA = 1e-10          # the line search gives up below this step length
@@ -53,7 +54,7 @@ class NewtonResult:
 
 
 def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: np.ndarray,
-                  step_tolerance: float = 1e-10, max_iterations: int = 50, keep_iterates: bool = False,
+                  step_tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50, keep_iterates: bool = False,
                   time_budget: Optional[float] = None, chord: Optional[Callable] = None,
                   force_tolerance: Optional[float] = None, name: str = "Newton") -> NewtonResult:
     """Minimise G of `problem` (a `StepProblem`: free, constrained_positions, masses, h) from x0 (N, 3).

@@ -32,7 +32,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from ..backend import ensure_taichi
 from ..errors import ConfigError, enum_value
 from .hessian import HessianPattern, StepKernels
-from .damped_newton import NewtonResult, damped_newton
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 
 _WARNED = set()
 
@@ -261,7 +261,7 @@ class GlobalNewton:
                                       where=kernels.masses > 0)
         return -g * inverse_stiffness[:, None]
 
-    def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
+    def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
               keep_iterates: bool = False, time_budget: float = None,
               force_tolerance: float = None) -> NewtonResult:
         """Minimise G from x0 (N, 3); the loop, convergence test and warnings of `newton_solve`
@@ -317,7 +317,7 @@ def global_newton(tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver
     return solver
 
 
-def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
+def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
                       keep_iterates: bool = False, linear_solver=LinearSolver.AUTO,
                       force_tolerance: float = None) -> NewtonResult:
     """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`

@@ -19,7 +19,7 @@ import scipy.sparse.linalg as spla
 
 from ..physics.ground import ground_energy_np, ground_gradient_np, ground_hessian_diag_np
 from ..physics.material import d2psi_dF2_np, dpsi_dF_np, psi_np
-from .damped_newton import NewtonResult, damped_newton
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 
 
 @dataclass(frozen=True)
@@ -96,7 +96,7 @@ class StepProblem:
         return H + sp.diags(diag)
 
 
-def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
+def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
                  keep_iterates: bool = False) -> NewtonResult:
     """Minimise G from x0 (N, 3) with projected Newton and backtracking line search (`damped_newton`).
 

@@ -29,7 +29,7 @@ from .._ti import ti
 from ..backend import ensure_taichi
 from ..mesh.coloring import color_vertices
 from ..errors import ConfigError, enum_value
-from .damped_newton import NewtonResult, damped_newton
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 from .direct import LinearSolver, global_newton
 from .hessian import StepKernels
 
@@ -247,7 +247,7 @@ class NewtonPCG:
             rz = rz_new
         return d, self.max_cg_iterations, relative
 
-    def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
+    def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
               keep_iterates: bool = False, time_budget: float = None, force_tolerance: float = None) -> PCGResult:
         """Minimise G from x0 (N, 3); the loop and convergence test of `newton_solve` (`damped_newton`:
         tolerance is its step_tolerance; force_tolerance and time_budget as there)."""
