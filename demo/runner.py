@@ -127,7 +127,8 @@ class PanelSim:
         """Simulate with ``settings`` from the current state on: the one place a panel's settings change.
 
         An open iteration-by-iteration step is closed first; every setting is assigned to the running
-        simulation (they are all live settings of `solver.Simulation`).
+        simulation (they are all live settings of `solver.Simulation`); one the panel's method refuses
+        stops the panel with the solver's message, as a divergence does.
         """
         if settings == self.settings:
             return
@@ -135,10 +136,9 @@ class PanelSim:
         material = dataclasses.replace(self.sim.material, youngs_modulus=settings.youngs_modulus)
         rho = settings.chebyshev_rho or None
         self._settings.update(material=material, iterations=settings.iterations, dt=settings.dt, chebyshev_rho=rho)
-        self.sim.chebyshev_rho = rho
         self.sim.material = material
-        self.sim.iterations = settings.iterations
-        self.sim.dt = settings.dt
+        self._guarded(lambda: setattr(self.sim, "settings", dataclasses.replace(
+            self.sim.settings, chebyshev_rho=rho, iterations=settings.iterations, dt=settings.dt)))
         self.reference = None       # the trajectory ghost restarts with the new settings on first use
         self.reference_synced = False
 

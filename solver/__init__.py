@@ -19,18 +19,20 @@ from .physics.material import Material
 from .mesh.tetmesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
 from .method import Method
 from .metrics import relative_energy_gap, relative_error
-from .newton.oracle import NewtonResult, StepProblem, newton_solve
+from .newton.damped_newton import NewtonResult
+from .newton.oracle import StepProblem, newton_solve
 from .newton.pcg import Preconditioner, newton_pcg
 from .mesh.quality import MeshQuality, det_F, inverted_count
-from .vbd.simulation import InitialGuess, IterationRecord, Simulation
+from .vbd.simulation import InitialGuess, IterationRecord, Settings, Simulation
 from .mesh.tetrahedralize import Mesher
 from .mesh.topology import Topology
 
 __all__ = [
     "Coloring", "ConfigError", "Contact", "Ground", "InitialGuess", "IterationRecord", "LinearSolver", "Material",
     "MeshError", "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "Method", "NewtonResult",
-    "Precision", "Preconditioner", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError", "VertexOrder",
-    "boundary_faces", "box_mesh", "color_vertices", "det_F", "ensure_taichi", "fast_newton_solve",
-    "inverted_count", "is_valid_coloring", "load_mesh", "merge_meshes", "newton_pcg", "newton_solve",
+    "Precision", "Preconditioner", "Settings", "Simulation", "StepProblem", "TetMesh", "Topology", "VBDError",
+    "VertexOrder", "boundary_faces", "box_mesh", "color_vertices", "det_F", "ensure_taichi",
+    "fast_newton_solve", "inverted_count", "is_valid_coloring", "load_mesh", "merge_meshes", "newton_pcg",
+    "newton_solve",
     "relative_energy_gap", "relative_error", "save_mesh", "sliver_box_mesh",
 ]

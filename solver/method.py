@@ -12,12 +12,12 @@ from .errors import enum_value
 
 
 class Method(Enum):
-    """The solver of each time step of a `Simulation`."""
+    """The solver of each time step of a `Simulation` (what each setting means for each: `vbd/settings.py`)."""
 
     VBD = "vbd"                  # `iterations` VBD iterations (the lecture's method)
-    NEWTON = "newton"            # projected Newton to convergence, sparse direct solve (`global_newton`)
-    PCG = "pcg"                  # inexact Newton, CG preconditioned by VBD's colour sweep (`pcg`)
-    MULTILEVEL = "multilevel"    # two-level VBD: coarse-cage correction + VBD sweeps (`multilevel`)
+    NEWTON = "newton"            # projected Newton, sparse direct solve (`newton/direct.py`)
+    PCG = "pcg"                  # inexact Newton, CG preconditioned by VBD's colour sweep (`newton/pcg.py`)
+    MULTILEVEL = "multilevel"    # two-level VBD: coarse-cage correction + VBD sweeps (`newton/multilevel.py`)
     AUTO = "auto"                # VBD where waves cross few cells per step, else two-level VBD
 
 

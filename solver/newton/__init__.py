@@ -3,5 +3,6 @@ sparse direct solver (`direct`, `hessian`), Newton-PCG (`pcg`) and two-level VBD
 `prolongation`). They read the terms of G from the physics wing.
 """
 from .direct import LinearSolver, fast_newton_solve
-from .oracle import NewtonResult, StepProblem, newton_solve
+from .damped_newton import NewtonResult
+from .oracle import StepProblem, newton_solve
 from .pcg import Preconditioner, newton_pcg

@@ -1,7 +1,7 @@
 """Projected Newton on G with Taichi assembly and a sparse direct solve: the fast twin of `newton_solve`.
 
-Same iteration, line search and convergence test as the numpy oracle `solver.newton.newton_solve`
-(lecture notes, chapter 2), so the two agree to round-off; what changes is the cost. G, its gradient
+Same loop, line search and convergence test as the numpy oracle `solver.newton.newton_solve`
+(`damped_newton`, lecture notes, chapter 2), so the two agree to round-off; what changes is the cost. G, its gradient
 and the projected Hessian come from the kernels in `solver.hessian`, into a CSR pattern built once
 per mesh and free mask, and the linear system is solved by a sparse factorisation of that pattern:
 
@@ -20,7 +20,6 @@ call `.solve(problem, x0)` for every step. `fast_newton_solve(problem, x0)` is t
 `newton_solve`.
 """
 import hashlib
-import time
 import warnings
 from collections import OrderedDict
 from enum import Enum
@@ -33,7 +32,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 from ..backend import ensure_taichi
 from ..errors import ConfigError, enum_value
 from .hessian import HessianPattern, StepKernels
-from .oracle import NewtonRecord, NewtonResult
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 
 _WARNED = set()
 
@@ -262,10 +261,11 @@ class GlobalNewton:
                                       where=kernels.masses > 0)
         return -g * inverse_stiffness[:, None]
 
-    def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
-              keep_iterates: bool = False, time_budget: float = None) -> NewtonResult:
-        """Minimise G from x0 (N, 3); same result, convergence test and warnings as `newton_solve`.
-        time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds.
+    def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
+              keep_iterates: bool = False, time_budget: float = None,
+              force_tolerance: float = None) -> NewtonResult:
+        """Minimise G from x0 (N, 3); the loop, convergence test and warnings of `newton_solve`
+        (`damped_newton`: tolerance is its step_tolerance; force_tolerance and time_budget as there).
 
         Eigenvalue filtering (after Chen et al. 2024, "Trust-region eigenvalue filtering for projected
         Newton"): the projection that keeps far-away steps safe also slows Newton to linear convergence
@@ -274,9 +274,10 @@ class GlobalNewton:
         others use the exact one (if it is positive definite), which converges quadratically."""
         self.check(problem)
         kernels = StepKernels(self.pattern, problem)
-        return newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates,
-                                 lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted),
-                                 time_budget, self.chord_direction)
+        return damped_newton(problem, kernels.energy_gradient,
+                             lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted), x0,
+                             tolerance, max_iterations, keep_iterates, time_budget, self.chord_direction,
+                             force_tolerance)
 
     def chord_direction(self, g: np.ndarray):
         """d (N, 3) solving H_last d = -g with the last factorised Hessian (a back substitution, no new
@@ -287,85 +288,6 @@ class GlobalNewton:
         d = np.zeros_like(g)
         d[p.free] = self.direct.back_solve(-g[p.free].ravel()).reshape(-1, 3)
         return d
-
-
-MODEL_AGREEMENT = 0.25    # |actual / predicted decrease - 1| below which the quadratic model is trusted
-CHORD_ATTEMPT = 0.1       # a chord step is tried once the last step is this fraction of the one before
-CHORD_CONTRACTION = 0.01  # ... and taken when it is at most this fraction of the last step
-
-
-def newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction, time_budget=None,
-                      chord=None):
-    """The loop of `newton_solve` with G and dG/dx from `kernels` and the step from
-    direction(x, g, iteration, trusted) -> d (N, 3), where trusted is False after a step that was not a
-    full Newton step or whose quadratic model g.d / 2 mispredicted the decrease of G by more than
-    MODEL_AGREEMENT (and the decrease was above G's round-off); True at the first iteration and
-    otherwise. Shared by the direct and the PCG Newton.
-
-    chord(g) -> d or None: the step with the last factorised Hessian, a back substitution (Newton with
-    a lagged Hessian). Once the steps shrink fast (the last trusted step at most CHORD_ATTEMPT times the
-    one before), the chord step is tried first and taken if it is at most CHORD_CONTRACTION times the
-    last step: the lagged Hessian is then as good as a new one, and the factorisation is saved (on the
-    bar of benchmarks/newton_speed.py the last two of four iterations are chord steps). Otherwise a
-    full iteration follows.
-    """
-    free = problem.free
-    x = np.ascontiguousarray(np.where(free[:, None], x0, problem.constrained_positions), dtype=np.float64)
-    size = float(np.ptp(x, axis=0).max()) or 1.0
-    force_scale = float(np.max(problem.masses) / problem.h ** 2 * size)
-    start = time.perf_counter()
-    g, g_new = np.empty_like(x), np.empty_like(x)
-    G = kernels.energy_gradient(x, g)
-    result = NewtonResult(x, 0, False)
-    result.history.append(NewtonRecord(0, G, float(np.abs(g).max()), 0.0))
-    x_new = np.empty_like(x)
-    trusted, last_step, step_before = True, np.inf, np.inf
-    for it in range(1, max_iterations + 1):
-        d = None
-        if chord is not None and trusted and np.isfinite(step_before) and last_step <= CHORD_ATTEMPT * step_before:
-            d = chord(g)
-            if d is not None and not (np.abs(d).max() <= CHORD_CONTRACTION * last_step and np.vdot(g, d) < 0):
-                d = None
-        if d is None:
-            d = direction(x, g, it, trusted)
-        if not np.isfinite(d).all():
-            warnings.warn(f"Newton direction is not finite at iteration {it}; stopping at the last iterate",
-                          stacklevel=3)
-            break
-        slope = float(np.vdot(g, d))
-        alpha = 1.0
-        while alpha >= 1e-10:
-            np.multiply(d, alpha, out=x_new)
-            x_new += x
-            G_new = kernels.energy_gradient(x_new, g_new)
-            if np.isfinite(G_new) and G_new <= G + 1e-4 * alpha * slope + 1e-15 * abs(G):
-                break
-            alpha *= 0.5
-        else:
-            if np.abs(g).max() > 1e-10 * force_scale:
-                warnings.warn(f"the line search could not decrease G at iteration {it} (max |dG/dx| = "
-                              f"{np.abs(g).max():.2e} N); stopping at the last iterate", stacklevel=3)
-            break
-        predicted = 0.5 * slope
-        trusted = alpha == 1.0 and (abs(G_new - G - predicted) <= MODEL_AGREEMENT * abs(predicted)
-                                    or abs(predicted) <= 1e-12 * abs(G))
-        last_step, step_before = alpha * float(np.abs(d).max()), last_step
-        x, x_new = x_new, x
-        g, g_new = g_new, g
-        G = G_new
-        result.history.append(NewtonRecord(it, G, float(np.abs(g).max()), time.perf_counter() - start))
-        if keep_iterates:
-            result.iterates.append(x.copy())
-        result.iterations = it
-        if last_step <= tolerance * size or np.abs(g).max() <= 1e-13 * force_scale:
-            result.converged = True
-            break
-        if time_budget is not None and result.history[-1].seconds > time_budget:
-            break
-    result.x = x.copy()
-    if not result.converged and (time_budget is None or result.history[-1].seconds <= time_budget):
-        warnings.warn(f"Newton did not converge ({result.iterations} iterations)", stacklevel=3)
-    return result
 
 
 _CACHE = OrderedDict()
@@ -395,8 +317,10 @@ def global_newton(tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver
     return solver
 
 
-def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
-                      keep_iterates: bool = False, linear_solver=LinearSolver.AUTO) -> NewtonResult:
-    """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`."""
-    return global_newton(problem.tets, problem.free, linear_solver).solve(problem, x0, tolerance, max_iterations,
-                                                                         keep_iterates)
+def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
+                      keep_iterates: bool = False, linear_solver=LinearSolver.AUTO,
+                      force_tolerance: float = None) -> NewtonResult:
+    """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`
+    (force_tolerance in N: also stop once max_i |dG/dx_i| is below it)."""
+    return global_newton(problem.tets, problem.free, linear_solver).solve(
+        problem, x0, tolerance, max_iterations, keep_iterates, force_tolerance=force_tolerance)

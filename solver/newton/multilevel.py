@@ -80,7 +80,8 @@ class TwoLevelVBD:
     cells of the coarse cage (default: `coarsening` times the fine edge length per axis);
     operator: a `CoarseOperator`; refresh: a `CoarseRefresh`; pre_sweeps, post_sweeps: VBD iterations
     before and after each coarse correction; cycles: cycles per `step()`; tolerance: stop a step early
-    once max_i |f_i| falls below this fraction of its value at the initial guess.
+    once max_i |f_i| falls below this fraction of its value at the initial guess (None: the Simulation's
+    own tolerance test, `Simulation.stop_below`, checked after every cycle).
     """
 
     def __init__(self, sim, cage_cells=None, coarsening: int = 2,
@@ -241,7 +242,7 @@ class TwoLevelVBD:
         self._cycle = 0
         self._start = time.perf_counter()
         r = self.sim.max_residual()
-        self._stop_below = None if self.tolerance is None else self.tolerance * r
+        self._stop_below = self.sim.stop_below if self.tolerance is None else self.tolerance * r
         self.history = [CycleRecord(0, 0, self.sim.energy(), r, 0.0, 0.0)]
 
     def run_cycles(self, n: int) -> int:

@@ -4,15 +4,14 @@
 
 Each iteration assembles the full sparse Hessian (every tet's 12x12 block, with the 9x9 stress
 Hessian projected to be positive semi-definite), solves one large sparse linear system, and
-backtracks along the direction until G decreases enough (Armijo). This is the "black box" the
-lecture contrasts with VBD (lecture notes, chapter 2). Pure numpy/scipy, independent of the Taichi
-kernels, so agreement between the two is evidence for both.
+backtracks along the direction until G decreases enough (Armijo; the loop of `damped_newton`, shared
+with the fast Newton). This is the "black box" the lecture contrasts with VBD (lecture notes, chapter 2).
+G, its gradient and Hessian are assembled here in pure numpy/scipy, independent of the Taichi kernels,
+so agreement between the two is evidence for both.
 """
 from __future__ import annotations
 
-import time
-import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -20,6 +19,7 @@ import scipy.sparse.linalg as spla
 
 from ..physics.ground import ground_energy_np, ground_gradient_np, ground_hessian_diag_np
 from ..physics.material import d2psi_dF2_np, dpsi_dF_np, psi_np
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 
 
 @dataclass(frozen=True)
@@ -96,71 +96,25 @@ class StepProblem:
         return H + sp.diags(diag)
 
 
-@dataclass(frozen=True)
-class NewtonRecord:
-    """After `iteration` Newton iterations: G, max_i |dG/dx_i| and the wall time so far (s)."""
-
-    iteration: int
-    energy: float
-    max_gradient: float
-    seconds: float
-
-
-@dataclass
-class NewtonResult:
-    """x: (N, 3) solution; iterations; converged; history: one `NewtonRecord` per iterate;
-    iterates: the positions after each iteration when asked for (`keep_iterates=True`)."""
-
-    x: np.ndarray
-    iterations: int
-    converged: bool
-    history: list = field(default_factory=list)
-    iterates: list = field(default_factory=list)
-
-
-def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
+def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
                  keep_iterates: bool = False) -> NewtonResult:
-    """Minimise G from x0 (N, 3) with projected Newton and backtracking line search.
+    """Minimise G from x0 (N, 3) with projected Newton and backtracking line search (`damped_newton`).
 
+    The direction solves the full projected Hessian system assembled here in numpy with SuperLU.
     Converged when the Newton step is below `tolerance` times the body's size, or G's gradient is at
     round-off level.
     """
-    x = np.where(problem.free[:, None], x0, problem.constrained_positions).astype(np.float64)
     free_dofs = np.flatnonzero(np.repeat(problem.free, 3))
-    size = float(np.ptp(x, axis=0).max()) or 1.0
-    force_scale = float(np.max(problem.masses) / problem.h ** 2 * size)
-    start = time.perf_counter()
-    G = problem.energy(x)
-    g = problem.gradient(x)
-    result = NewtonResult(x, 0, False)
-    result.history.append(NewtonRecord(0, G, float(np.abs(g).max()), 0.0))
-    for it in range(1, max_iterations + 1):
+
+    def energy_gradient(x, out):
+        out[:] = problem.gradient(x)
+        return problem.energy(x)
+
+    def direction(x, g, iteration, trusted):
         H = problem.hessian(x)[free_dofs][:, free_dofs]
         d = np.zeros(x.size)
         d[free_dofs] = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs], permc_spec="MMD_AT_PLUS_A")
-        d = d.reshape(-1, 3)
-        if not np.isfinite(d).all():
-            break
-        slope = float(np.dot(g.ravel(), d.ravel()))
-        alpha = 1.0
-        while alpha >= 1e-10:
-            x_new = x + alpha * d
-            G_new = problem.energy(x_new)
-            if np.isfinite(G_new) and G_new <= G + 1e-4 * alpha * slope + 1e-15 * abs(G):
-                break
-            alpha *= 0.5
-        else:
-            break   # no decrease along the Newton direction: keep x, report non-convergence
-        x, G = x_new, G_new
-        g = problem.gradient(x)
-        result.history.append(NewtonRecord(it, G, float(np.abs(g).max()), time.perf_counter() - start))
-        if keep_iterates:
-            result.iterates.append(x.copy())
-        result.iterations = it
-        if alpha * np.abs(d).max() <= tolerance * size or np.abs(g).max() <= 1e-13 * force_scale:
-            result.converged = True
-            break
-    result.x = x
-    if not result.converged:
-        warnings.warn(f"Newton reference did not converge ({result.iterations} iterations)", stacklevel=2)
-    return result
+        return d.reshape(-1, 3)
+
+    return damped_newton(problem, energy_gradient, direction, x0, tolerance, max_iterations, keep_iterates,
+                         name="Newton reference")

@@ -29,9 +29,9 @@ from .._ti import ti
 from ..backend import ensure_taichi
 from ..mesh.coloring import color_vertices
 from ..errors import ConfigError, enum_value
-from .direct import LinearSolver, global_newton, newton_iterations
+from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
+from .direct import LinearSolver, global_newton
 from .hessian import StepKernels
-from .oracle import NewtonResult
 
 
 class Preconditioner(Enum):
@@ -247,10 +247,10 @@ class NewtonPCG:
             rz = rz_new
         return d, self.max_cg_iterations, relative
 
-    def solve(self, problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
-              keep_iterates: bool = False, time_budget: float = None) -> PCGResult:
-        """Minimise G from x0 (N, 3); the convergence test of `newton_solve`; time_budget as in
-        `GlobalNewton.solve`."""
+    def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
+              keep_iterates: bool = False, time_budget: float = None, force_tolerance: float = None) -> PCGResult:
+        """Minimise G from x0 (N, 3); the loop and convergence test of `newton_solve` (`damped_newton`:
+        tolerance is its step_tolerance; force_tolerance and time_budget as there)."""
         p = self.pattern
         if problem.tets.shape != p.tets.shape or not np.array_equal(problem.free, p.free) \
                 or not np.array_equal(problem.tets, p.tets):
@@ -284,8 +284,8 @@ class NewtonPCG:
             state["direct_iterations"] += 1
             return self.direct.newton_direction(kernels, x, g)
 
-        base = newton_iterations(problem, kernels, x0, tolerance, max_iterations, keep_iterates, direction,
-                                 time_budget)
+        base = damped_newton(problem, kernels.energy_gradient, direction, x0, tolerance, max_iterations,
+                             keep_iterates, time_budget, force_tolerance=force_tolerance)
         result = PCGResult(base.x, base.iterations, base.converged, base.history, base.iterates)
         result.cg_iterations = cg_counts
         result.direct_iterations = state["direct_iterations"]

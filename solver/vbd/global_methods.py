@@ -1,0 +1,54 @@
+"""One time step of a `Simulation` by a global method: the thin driver between the lecture's solver and
+the newton wing (imported on first use, so that VBD alone never loads it).
+
+Both start from VBD's initial guess (`Simulation.begin_step`) and end with `Simulation.end_step`
+(translation correction, velocities, clock); what each setting means for them is in `settings.py`.
+"""
+from ..method import Method, multilevel_cycles
+from .state import IterationRecord
+
+NEWTON_STEP_TOLERANCE = 1e-8   # without a tolerance: Newton stops when its step is below this x the body's size
+
+
+def step(sim) -> None:
+    """One time step of `sim` with its global method (newton, pcg or multilevel)."""
+    if sim.method is Method.MULTILEVEL:
+        two_level = _two_level(sim)
+        two_level.begin_step()
+        two_level.run_cycles(multilevel_cycles(sim.iterations))
+        two_level.end_step()
+    else:
+        newton_step(sim)
+
+
+def _two_level(sim):
+    """The `TwoLevelVBD` of `sim`, built at its first step (the cage and its operator, once)."""
+    from ..newton.multilevel import TwoLevelVBD
+
+    if sim._two_level is None:
+        sim._two_level = TwoLevelVBD(sim)
+    return sim._two_level
+
+
+def newton_step(sim) -> None:
+    """Minimise G of the step with the Taichi Newton (method="newton") or Newton-PCG ("pcg"), at most
+    `sim.iterations` Newton iterations, stopping at the relative residual `sim.tolerance` (or, without
+    one, when the Newton step is below NEWTON_STEP_TOLERANCE x the body's size)."""
+    from ..newton.direct import fast_newton_solve
+    from ..newton.pcg import newton_pcg
+
+    problem = sim.step_problem()
+    sim.begin_step()
+    force_tolerance = sim.stop_below
+    step_tolerance = NEWTON_STEP_TOLERANCE if force_tolerance is None else 0.0
+    if sim.method is Method.NEWTON:
+        result = fast_newton_solve(problem, sim.positions, step_tolerance, sim.iterations,
+                                   force_tolerance=force_tolerance)
+    else:
+        result = newton_pcg(problem.tets, problem.free).solve(problem, sim.positions, step_tolerance,
+                                                                sim.iterations, force_tolerance=force_tolerance)
+    sim.set_positions(result.x)
+    sim.last_iterations = result.iterations
+    if sim.record_history:
+        sim.history = [IterationRecord(r.iteration, r.energy, r.max_gradient) for r in result.history]
+    sim.end_step()

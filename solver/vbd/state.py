@@ -1,0 +1,216 @@
+"""The device arrays of a `Simulation` and the plumbing around them: allocation and upload (once, at
+construction), the parameters array, reading and writing positions and velocities, saving and
+restoring a state. `SimulationState` is the base class of `Simulation`, which holds the time step.
+"""
+from dataclasses import dataclass
+from typing import NamedTuple
+from weakref import WeakKeyDictionary
+
+import numpy as np
+from .._ti import ti
+
+from . import layout as L
+from ..errors import ConfigError
+from ..mesh.topology import Topology, grad_rows
+
+_DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
+
+
+class SweepArrays(NamedTuple):
+    """`Simulation.arrays`: the ti.ndarrays of one simulation's state and settings (`layout.py`) and of
+    its `Topology` (color_order (S,), offsets (S + 1,), others (E, 3), adj_f (E, ADJ_FLOATS),
+    color_starts (C + 1,))."""
+
+    state: object
+    mass: object
+    params: object
+    color_order: object
+    offsets: object
+    others: object
+    adj_f: object
+    color_starts: object
+
+
+@dataclass(frozen=True)
+class IterationRecord:
+    """One entry of `Simulation.history`: G in J and the largest |f_i| in N after `iteration` iterations
+    (VBD iterations; Newton iterations for method="newton" and "pcg")."""
+
+    iteration: int
+    energy: float
+    max_residual: float
+
+
+class SimulationState:
+    """Device arrays of one simulation: state (STATE_ROWS, N) 3-vectors (rows: `layout.X`, X_N, ...),
+    masses (N,), params (PARAM_COUNT,), per-vertex f_i (N, 3) and H_i (N, 3, 3), and the mesh's tets
+    (M, 4), Dm^-1 (M, 3, 3), rest volumes (M,) and `Topology` on the device."""
+
+    def _allocate(self):
+        mesh = self.mesh
+        dtype = self.dtype = self.precision.ti_dtype
+        self._np_dtype = np.float64 if dtype == ti.f64 else np.float32
+        n, m = mesh.n_vertices, mesh.n_tets
+        self.state = ti.Vector.ndarray(3, dtype, (L.STATE_ROWS, n))
+        self._mass = ti.ndarray(dtype, n)
+        self._params = ti.ndarray(dtype, L.PARAM_COUNT)
+        self._f = ti.Vector.ndarray(3, dtype, n)
+        self._row_buffer = ti.Vector.ndarray(3, dtype, n)
+        self._H = ti.Matrix.ndarray(3, 3, dtype, n)
+        self._free = ti.ndarray(ti.i32, n)
+        self._free.from_numpy(self.free_mask.astype(np.int32))
+        self._translation = ti.Vector.ndarray(3, ti.f64, 2)
+
+        X, T = mesh.vertices, mesh.tets
+        self._grad_rows = grad_rows(X, T)                  # (M, 4, 3): rows 1-3 are Dm^-1
+        self._rest_vol = mesh.rest_volumes()
+        self._size = float(np.ptp(X, axis=0).max())      # m, the body's largest extent
+        self._tets = ti.Vector.ndarray(4, ti.i32, m)
+        self._Dm_inv = ti.Matrix.ndarray(3, 3, dtype, m)
+        self._volume = ti.ndarray(dtype, m)
+        self._tets.from_numpy(T.astype(np.int32))
+        self._Dm_inv.from_numpy(self._grad_rows[:, 1:].astype(self._np_dtype))
+        self._volume.from_numpy(self._rest_vol.astype(self._np_dtype))
+        self._adjacency = self._device_topology()
+
+        kin = np.flatnonzero(self.kinematic_mask).astype(np.int32)
+        self._kinematic_rest = X[kin]
+        self._n_kinematic = len(kin)
+        self._kin_ids = ti.ndarray(ti.i32, max(len(kin), 1))
+        self._kin_targets = ti.Vector.ndarray(3, dtype, max(len(kin), 1))
+        self._kin_ids.from_numpy(np.resize(kin, max(len(kin), 1)))
+
+    def _device_topology(self):
+        """The topology's arrays on the device, shared by simulations of the same mesh and precision."""
+        top = self.topology
+        per_dtype = _DEVICE_TOPOLOGY.setdefault(top, {})
+        if self.dtype not in per_dtype:
+            color_order = ti.ndarray(ti.i32, top.n_slots)
+            offsets = ti.ndarray(ti.i32, top.n_slots + 1)
+            others = ti.Vector.ndarray(3, ti.i32, top.n_entries)
+            adj_f = ti.Vector.ndarray(L.ADJ_FLOATS, self.dtype, top.n_entries)
+            color_starts = ti.ndarray(ti.i32, top.n_colors + 1)
+            color_order.from_numpy(top.color_order)
+            offsets.from_numpy(top.offsets)
+            others.from_numpy(top.others)
+            adj_f.from_numpy(np.column_stack([top.q, top.c, top.m_sq, top.volume]).astype(self._np_dtype))
+            color_starts.from_numpy(np.array([s for s, _ in top.color_ranges] + [top.n_slots], dtype=np.int32))
+            per_dtype[self.dtype] = (color_order, offsets, others, adj_f, color_starts)
+        return per_dtype[self.dtype]
+
+    def _upload_params(self, settings, material):
+        """Write the scalar settings and the material into `params` (`layout.py`)."""
+        p = np.zeros(L.PARAM_COUNT)
+        p[L.TIME_STEP] = settings.dt
+        p[L.MU], p[L.LAM] = material.mu, material.lam
+        p[L.DAMPING] = settings.damping
+        ground = settings.ground
+        if ground is not None:
+            p[L.GROUND] = 1.0
+            p[L.GROUND_HEIGHT] = ground.height
+            p[L.GROUND_STIFFNESS] = ground.stiffness
+            p[L.FRICTION] = ground.friction
+            p[L.FRICTION_SPEED] = ground.friction_speed
+        p[L.GRAVITY_X:L.GRAVITY_X + 3] = settings.gravity
+        p[L.KEEP_ORIENTATION] = float(settings.keep_orientation)
+        self._params.from_numpy(p.astype(self._np_dtype))
+
+    def _upload_masses(self, density: float) -> None:
+        """Lumped masses m_i = density x (a quarter of the volume of every tet at i), in kg."""
+        mass = np.zeros(self.mesh.n_vertices)
+        np.add.at(mass, self.mesh.tets.ravel(), np.repeat(density * self._rest_vol / 4.0, 4))
+        self._mass.from_numpy(mass.astype(self._np_dtype))
+        self._max_mass = float(mass.max())
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) float64 copy of the current positions x."""
+        return self._row(L.X)
+
+    @property
+    def velocities(self) -> np.ndarray:
+        """(N, 3) float64 copy of the velocities v."""
+        return self._row(L.V)
+
+    @property
+    def x_n(self) -> np.ndarray:
+        """(N, 3) float64 copy of the positions x_n at the start of the current (or last) step."""
+        return self._row(L.X_N)
+
+    @property
+    def y(self) -> np.ndarray:
+        """(N, 3) float64 copy of the current (or last) step's inertial target y = x_n + h v_n + h^2 g."""
+        return self._row(L.Y)
+
+    def _row(self, row: int) -> np.ndarray:
+        L.read_row(self.state, row, self._row_buffer)
+        return self._row_buffer.to_numpy().astype(np.float64)
+
+    @property
+    def arrays(self) -> SweepArrays:
+        """The device arrays the kernels of `vertex_solve` take, for code that launches its own sweeps
+        (baselines, probes): state (STATE_ROWS, N), mass (N,), params, and the `Topology` on the device.
+        Shared, not copied: writing into them changes the simulation."""
+        return SweepArrays(self.state, self._mass, self._params, *self._adjacency)
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(N,) int32 colour of every vertex, -1 for fixed and kinematic vertices."""
+        return np.where(self.free_mask, self.coloring.colors, -1).astype(np.int32)
+
+    @property
+    def n_colors(self) -> int:
+        return self.topology.n_colors
+
+    @property
+    def masses(self) -> np.ndarray:
+        """(N,) lumped vertex masses in kg."""
+        return self._mass.to_numpy().astype(np.float64)
+
+    def set_positions(self, x: np.ndarray) -> None:
+        """Overwrite the positions (N, 3) in metres, e.g. to start from a deformed state."""
+        self._set_rows({L.X: self._checked_state(x, "positions")})
+
+    def set_velocities(self, v: np.ndarray, previous=None) -> None:
+        """Overwrite the velocities v_n (N, 3) in m/s. previous: the velocities v_{n-1} (N, 3) of the
+        step before, which the adaptive initial guess reads; by default v - h g, i.e. free fall."""
+        v = self._checked_state(v, "velocities")
+        v_prev = v - self.dt * self.gravity if previous is None else self._checked_state(previous, "previous")
+        self._set_rows({L.V: v, L.V_PREV: v_prev})
+
+    def _set_rows(self, rows: dict) -> None:
+        for row, value in rows.items():
+            self._row_buffer.from_numpy(np.asarray(value, dtype=self._np_dtype))
+            L.write_row(self.state, row, self._row_buffer)
+
+    def _checked_state(self, a, name):
+        try:
+            a = np.asarray(a, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{name} must be an array of numbers of shape ({self.mesh.n_vertices}, 3)") from None
+        if a.shape != (self.mesh.n_vertices, 3):
+            raise ConfigError(f"{name} must have shape ({self.mesh.n_vertices}, 3), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ConfigError(f"{name} contain NaN or infinite values; pass finite numbers")
+        return a
+
+    def save_state(self) -> dict:
+        """A copy of everything a step reads (positions, velocities, clock), for `restore_state`."""
+        if self._in_step:
+            raise ConfigError("save_state() is defined between steps; call end_step() first")
+        return {"state": self.state.to_numpy(), "time": self.time, "frame": self.frame}
+
+    def restore_state(self, saved: dict) -> None:
+        """Go back to a state returned by `save_state` of this simulation."""
+        self.state.from_numpy(saved["state"])
+        self.time, self.frame = saved["time"], saved["frame"]
+        self._in_step = False
+
+    def reset(self) -> None:
+        """Back to the rest shape at rest, time 0."""
+        zero = np.zeros_like(self.mesh.vertices)
+        self._set_rows({L.X: self.mesh.vertices, L.X_N: self.mesh.vertices, L.Y: self.mesh.vertices,
+                        L.V: zero, L.V_PREV: zero - self.dt * self.gravity})
+        self.time = 0.0
+        self.frame = 0
+        self._in_step = False

@@ -1,0 +1,152 @@
+"""Settings x methods: every live setting changes the step of every method, or that method refuses it
+with a one-line ConfigError saying what to use instead (issue 16, part 3)."""
+import dataclasses
+import warnings
+
+import numpy as np
+import pytest
+
+import solver
+
+MESH = solver.box_mesh(size=(0.5, 0.1, 0.1), cells=(10, 2, 2))
+FIXED = MESH.vertices[:, 0] < 1e-9
+TIP = MESH.vertices[:, 0] > 0.5 - 1e-9
+MATERIAL = solver.Material(1e6, 0.3, 1000.0)      # N_c >= 6: "auto" chooses two-level VBD
+GLOBAL = {solver.Method.NEWTON, solver.Method.PCG, solver.Method.MULTILEVEL}
+GROUND = solver.Ground(height=0.05)
+
+
+def _squash(sim):
+    """Throw the tip at the fixed end: an initial guess that inverts tets."""
+    v = np.zeros((MESH.n_vertices, 3))
+    v[TIP, 0] = -40.0
+    sim.set_velocities(v)
+
+
+def _shear(sim):
+    """A free body set spinning and stretching: the rigid-translation correction has work to do."""
+    x = MESH.vertices
+    sim.set_velocities(np.column_stack([4 * (x[:, 2] - 0.05), 3 * x[:, 0] ** 2, -2 * (x[:, 1] - 0.05)]))
+
+
+def _shifted(t, rest):
+    return rest + np.array([0.0, 0.0, 0.3 * t])
+
+
+# setting: (constructor arguments of both runs, the live assignment, methods that refuse it, set-up);
+# every field of solver.Settings has a row, and the material
+CASES = {
+    "dt": (dict(iterations=4), dict(dt=1 / 30), set(), None),
+    "gravity": (dict(iterations=4), dict(gravity=(0.0, -9.81, 0.0)), set(), None),
+    "iterations": (dict(iterations=1), dict(iterations=20), set(), None),
+    "tolerance": (dict(iterations=40), dict(tolerance=0.3), set(), None),
+    "check_every": (dict(iterations=40, tolerance=0.3), dict(check_every=7), GLOBAL, None),
+    "initial_guess": (dict(iterations=1, initial_guess="inertial"), dict(initial_guess="previous"), set(), None),
+    "chebyshev_rho": (dict(iterations=10), dict(chebyshev_rho=0.5), GLOBAL, None),
+    "damping": (dict(iterations=4), dict(damping=0.01), GLOBAL, None),
+    "ground": (dict(iterations=4), dict(ground=GROUND), set(), None),
+    "ground friction": (dict(iterations=4, ground=GROUND), dict(ground=solver.Ground(height=0.05, friction=0.5)),
+                        GLOBAL, None),
+    "keep_orientation": (dict(iterations=2, dt=1 / 30), dict(keep_orientation=True), GLOBAL, _squash),
+    "translation_correction": (dict(iterations=1, fixed=None), dict(translation_correction=False), set(), _shear),
+    "kinematic_motion": (dict(iterations=4, fixed=None, kinematic=FIXED, kinematic_motion=lambda t, rest: rest),
+                         dict(kinematic_motion=_shifted), set(), None),
+    "record_history": (dict(iterations=4), dict(record_history=True), set(), None),
+    "material": (dict(iterations=4), dict(material=solver.Material(3e5, 0.3, 1000.0)), set(), None),
+}
+METHODS = ["vbd", "newton", "pcg", "multilevel", "auto"]
+
+
+def test_the_table_covers_every_setting():
+    names = {name for change in (case[1] for case in CASES.values()) for name in change}
+    assert names == {field.name for field in dataclasses.fields(solver.Settings)} | {"material"}
+
+
+def _simulation(method, kwargs):
+    kwargs = dict(dict(fixed=FIXED), **kwargs)
+    return solver.Simulation(MESH, MATERIAL, method=method, **kwargs)
+
+
+def _step(sim, set_up):
+    if set_up is not None:
+        set_up(sim)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # Newton capped at a few iterations: "did not converge"
+        sim.step()
+    return sim.positions, len(sim.history)
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("setting", list(CASES))
+def test_every_method_honours_or_refuses_every_setting(setting, method):
+    common, change, refused_by, set_up = CASES[setting]
+    sim = _simulation(method, common)
+    if sim.method in refused_by:
+        name, value = next(iter(change.items()))
+        old = getattr(sim, name)
+        with pytest.raises(solver.ConfigError, match="use method='vbd'") as live:
+            setattr(sim, name, value)
+        assert "\n" not in str(live.value)
+        assert getattr(sim, name) == old
+        with pytest.raises(solver.ConfigError, match="use method='vbd'"):
+            _simulation(method, dict(common, **change))
+        return
+    before, before_history = _step(sim, set_up)
+    changed = _simulation(method, common)
+    for name, value in change.items():
+        setattr(changed, name, value)
+    after, after_history = _step(changed, set_up)
+    if setting == "record_history":
+        assert before_history == 0 and after_history >= 2
+    elif setting == "translation_correction" and sim.method is solver.Method.NEWTON:
+        # Applied, and a no-op: an exact Newton step leaves no net force on a free body (the elastic
+        # forces sum to zero, inertia is linear), so the best rigid translation is zero.
+        assert np.abs(after - before).max() < 1e-12
+    else:
+        assert np.abs(after - before).max() > 1e-10, f"{setting} did not change a step of method={method}"
+
+
+@pytest.mark.parametrize("method", ["newton", "pcg"])
+def test_newton_iterations_and_tolerance_are_the_cap_and_the_relative_stopping_test(method):
+    capped = _simulation(method, dict(iterations=1))
+    with pytest.warns(UserWarning, match="did not converge"):
+        capped.step()
+    assert capped.last_iterations == 1
+    loose = _simulation(method, dict(tolerance=0.5, record_history=True))
+    loose.step()
+    history = loose.history
+    assert history[-1].max_residual <= loose.stop_below < history[-2].max_residual
+    assert loose.stop_below == pytest.approx(0.5 * max(history[0].max_residual,
+                                                        loose.masses.max() * 9.81), rel=1e-9)
+
+
+def test_multilevel_stops_at_the_first_cycle_below_the_tolerance():
+    sim = _simulation("multilevel", dict(iterations=200, tolerance=1e-3))
+    sim.step()
+    ml = sim._two_level
+    residuals = [record.max_residual for record in ml.history]
+    assert residuals[-1] <= sim.stop_below < min(residuals[:-1])
+    assert len(ml.history) - 1 < solver.method.multilevel_cycles(200)
+
+
+def test_enum_settings_accept_their_names_and_list_the_choices():
+    sim = _simulation("vbd", dict(initial_guess="inertia", coloring_order="natural"))
+    assert sim.initial_guess is solver.InitialGuess.INERTIA
+    sim.initial_guess = "previous"
+    assert sim.initial_guess is solver.InitialGuess.PREVIOUS
+    with pytest.raises(solver.ConfigError, match="'previous', 'inertia', 'inertial', 'adaptive'"):
+        sim.initial_guess = "y"
+    assert sim.initial_guess is solver.InitialGuess.PREVIOUS
+
+
+def test_live_assignment_goes_through_settings():
+    sim = _simulation("vbd", dict(iterations=3))
+    sim.settings = dataclasses.replace(sim.settings, dt=0.01, iterations=7)
+    assert (sim.dt, sim.iterations) == (0.01, 7)
+    with pytest.raises(solver.ConfigError, match="dt"):
+        sim.dt = -1.0
+    with pytest.raises(TypeError):
+        solver.Settings(0.01)                    # keyword-only
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        sim.settings.dt = 0.02
+    assert sim.settings == solver.Settings(dt=0.01, iterations=7)
