@@ -49,7 +49,7 @@ def build_parser():
     render.add_argument("--frames", type=positive, default=None, help="number of frames (default: the scene's own)")
     render.add_argument("--out", type=folder, default=None,
                         help="output folder (default: out/SCENE, or out/SCENE_2, _3, ... when it holds an earlier "
-                             "render)")
+                             "render and --overwrite is not given)")
     render.add_argument("--youngs-modulus", type=youngs_modulus, default=None, metavar="PA",
                         help="Young's modulus E of every body in Pa (default: the scene's own)")
     render.add_argument("--iterations", type=iterations, default=None,
@@ -80,9 +80,10 @@ def build_parser():
 def list_scenes():
     from . import scenes
 
+    width = max(len(name) for name in scenes.SCENES)
     for scene in scenes.SCENES.values():
         default = " (default)" if scene.name == scenes.DEFAULT_SCENE else ""
-        print(f"{scene.name:18s} {scene.title}{default}")
+        print(f"{scene.name:{width}s} {scene.title}{default}")
 
 
 def planned_files(out, scene, frames, video, export):
@@ -151,8 +152,9 @@ def render(args):
     frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
-    out = args.out if args.out is not None else fresh_folder(Path("out") / scene.name, scene, frames,
-                                                              video_format, export_format)
+    out = args.out if args.out is not None else Path("out") / scene.name
+    if args.out is None and not args.overwrite:
+        out = fresh_folder(out, scene, frames, video_format, export_format)
     files = planned_files(out, scene, frames, video_format, export_format)
     writer = VideoWriter(files[frames] if video_format is not VideoFormat.NONE else None, video_format, fps,
                          (width, height))

@@ -26,7 +26,7 @@ def label_rows(scene):
     for panel in scene.panels:
         n = 2       # the panel's label and its budget / iteration line
         if panel.newton_ghost:
-            n += 4 if scene.advance is Advance.TIME_STEPS else 1     # tip drop, off the ghost, error, approximate
+            n += 3 if scene.advance is Advance.TIME_STEPS else 1     # tip drop, off the ghost, error
         n += bool(panel.probe) + panel.show_inverted + panel.show_drift + (panel.same_wall_time_as is not None)
         rows = max(rows, n)
     return rows + 1

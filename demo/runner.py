@@ -437,7 +437,7 @@ class PanelSim:
             lines.append(f"{self.sim.n_colors} colours for {len(x)} vertices")
         if self.matched_ratio is not None:
             k = self.panel.same_wall_time_as
-            lines.append(f"at the start one step timed {self.matched_ratio:.2f}x panel {k + 1}'s step")
+            lines.append(f"at the start its step timed {self.matched_ratio:.2f}x panel {k + 1}'s (median of 7 pairs)")
         gap = fraction = None
         if self.ghost is not None and self.ghost_mode is GhostMode.TRAJECTORY:
             tip = self.tip
