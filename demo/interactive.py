@@ -67,7 +67,8 @@ class InteractiveApp:
         except Exception as e:  # GGUI reports a missing Vulkan loader or driver in several ways
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise DemoError("the interactive window needs Vulkan (apt-get install mesa-vulkan-drivers libvulkan1); "
-                            f"Taichi said: {first}. Headless rendering still works: {python_command()} -m demo render") from None
+                            f"Taichi said: {first}. Headless rendering still works: "
+                            f"{python_command()} -m demo render") from None
         self.show_window = show_window
         self.canvas = self.window.get_canvas()
         self.scene3d = self.window.get_scene()

@@ -448,7 +448,8 @@ class PanelSim:
             fraction = gap / self.length
             lines.append(f"off the ghost by {_cm(gap)} cm = {fraction:.0%} of its length")
         if self.error is not None:
-            unsure = "" if self.error_converged else f" (x* approximate: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap)"
+            unsure = ("" if self.error_converged
+                      else f" (x* approximate: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap)")
             # three decimals read well down to 0.01; below, where only the remedies get, the exponent
             shown = f"{self.error:.3f}" if self.error >= 0.01 else f"{self.error:.1e}"
             lines.append(f"relative error {shown}{unsure}")
@@ -470,7 +471,8 @@ class PanelSim:
             return f"iteration {self.iteration + 1}: no colour solved yet ({n} colours)"
         c = self.colours_done - 1
         count = int(np.count_nonzero(self.sim.colors == c))
-        return f"iteration {self.iteration + (self.colours_done < n)}: colour {c + 1} of {n} solved, {count} vertices at once"
+        iteration = self.iteration + (self.colours_done < n)
+        return f"iteration {iteration}: colour {c + 1} of {n} solved, {count} vertices at once"
 
     def _probe_line(self):
         moved = float(np.linalg.norm(self.sim.positions[self.probe] - self.start[self.probe]))

@@ -9,7 +9,6 @@ acceleration or a Newton reference ghost appear only where a scene sets them.
 Scenes are side-by-side panels of one or more bodies. Every panel is its own ``solver.Simulation``
 with its own settings, so a sweep is simply several panels that differ in one field.
 """
-import dataclasses
 import enum
 import warnings
 from dataclasses import dataclass, field

@@ -119,6 +119,7 @@ def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tm
     assert "[Taichi]" not in rendered.stdout + rendered.stderr, rendered.stderr
 
 
+@pytest.mark.slow
 def test_arch_gpu_without_a_gpu_warns_once_in_one_line(tmp_path):
     from solver import _ti as shim
 
