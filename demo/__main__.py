@@ -14,11 +14,14 @@ if __name__ == "__main__":
     # for (help, the scene list, results). ENABLE_TAICHI_HEADER_PRINT=1 brings it back.
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")
 
+import warnings  # noqa: E402
+
 import numpy as np  # noqa: E402
 
 import solver  # noqa: E402
 
-from .cli import HelpFormatter, Parser, folder, image_size, positive, seconds  # noqa: E402
+from .cli import (HelpFormatter, Parser, folder, image_size, iterations, positive, python_command,  # noqa: E402
+                  seconds, start_taichi, time_step, youngs_modulus)
 from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
@@ -34,7 +37,7 @@ def build_parser():
     from .video import VideoFormat
 
     formatter = HelpFormatter
-    parser = Parser(prog="python -m demo", formatter_class=formatter,
+    parser = Parser(prog=f"{python_command()} -m demo", formatter_class=formatter,
                      description="VBD teaching demos: headless image sequences and video, or an interactive "
                                  "window. With no command: render the stiffness sweep into out/stiffness_sweep/.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
@@ -44,7 +47,15 @@ def build_parser():
                             formatter_class=formatter)
     render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     render.add_argument("--frames", type=positive, default=None, help="number of frames (default: the scene's own)")
-    render.add_argument("--out", type=folder, default=None, help="output folder (default: out/SCENE)")
+    render.add_argument("--out", type=folder, default=None,
+                        help="output folder (default: out/SCENE, or out/SCENE_2, _3, ... when it holds an earlier "
+                             "render and --overwrite is not given)")
+    render.add_argument("--youngs-modulus", type=youngs_modulus, default=None, metavar="PA",
+                        help="Young's modulus E of every body in Pa (default: the scene's own)")
+    render.add_argument("--iterations", type=iterations, default=None,
+                        help="solver iterations per time step of every panel (default: the scene's own)")
+    render.add_argument("--dt", type=time_step, default=None, metavar="SECONDS",
+                        help="time step h in s (default: the scene's own)")
     render.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="image size in pixels")
     render.add_argument("--fps", type=positive, default=None, help="video frame rate (default: the scene's own)")
     render.add_argument("--duration", type=seconds, default=None, metavar="SECONDS",
@@ -69,9 +80,10 @@ def build_parser():
 def list_scenes():
     from . import scenes
 
+    width = max(len(name) for name in scenes.SCENES)
     for scene in scenes.SCENES.values():
         default = " (default)" if scene.name == scenes.DEFAULT_SCENE else ""
-        print(f"{scene.name:18s} {scene.title}{default}")
+        print(f"{scene.name:{width}s} {scene.title}{default}")
 
 
 def planned_files(out, scene, frames, video, export):
@@ -86,6 +98,16 @@ def planned_files(out, scene, frames, video, export):
         files += [out / "meshes" / f"frame_{i:04d}_panel{p}.{export.value}"
                   for i in range(frames) for p in range(len(scene.panels))]
     return files
+
+
+def fresh_folder(out, scene, frames, video, export):
+    """``out``, or when it holds files this render would write, the first of out_2, out_3, ... that does
+    not: running the default command again keeps the earlier render."""
+    candidate, number = out, 1
+    while any(f.exists() for f in planned_files(candidate, scene, frames, video, export)):
+        number += 1
+        candidate = out.with_name(f"{out.name}_{number}")
+    return candidate
 
 
 def prepare_output(out, files, overwrite):
@@ -128,17 +150,21 @@ def render(args):
     if args.frames and args.duration:
         raise DemoError("pass --frames or --duration, not both")
     frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
-    out = args.out if args.out is not None else Path("out") / scene.name
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
+    out = args.out if args.out is not None else Path("out") / scene.name
+    if args.out is None and not args.overwrite:
+        out = fresh_folder(out, scene, frames, video_format, export_format)
     files = planned_files(out, scene, frames, video_format, export_format)
     writer = VideoWriter(files[frames] if video_format is not VideoFormat.NONE else None, video_format, fps,
                          (width, height))
     prepare_output(out, files, args.overwrite)
 
     started = time.perf_counter()
-    runner = SceneRunner(scene, arch=args.arch)
-    composer = FrameComposer(scene, width, height, arch=args.arch)
+    start_taichi(args.arch)     # once: the runner and the renderer then use what runs
+    runner = SceneRunner(scene, arch=None)
+    runner.override(youngs_modulus=args.youngs_modulus, iterations=args.iterations, dt=args.dt)
+    composer = FrameComposer(scene, width, height, arch=None)
     try:
         with writer:
             for i in tqdm(range(frames), desc=scene.name, unit="frame", disable=None):
@@ -164,6 +190,13 @@ def render(args):
 
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
+    stderr = sys.stderr
+
+    def one_line_warning(message, category, filename, lineno, file=None, line=None):
+        """Warnings as the user sees them: "warning: MESSAGE", no source location."""
+        print(f"warning: {message}", file=stderr if file is None else file)
+
+    warnings.showwarning = one_line_warning
     try:
         if argv and argv[0] in DELEGATED:
             return _delegate(argv[0], argv[1:])

@@ -1,7 +1,14 @@
 """Argument parsing shared by the demo's commands: one-line errors, defaults in --help, value types."""
 import argparse
+import contextlib
+import io
+import math
 import re
+import sys
+import warnings
 from pathlib import Path
+
+import solver
 
 from .errors import DemoError
 
@@ -61,3 +68,59 @@ def seconds(text):
     if not (0.0 < value <= 3600.0):
         raise argparse.ArgumentTypeError(f"expected a duration in seconds between 0 and 3600, got {text!r}")
     return value
+
+
+def python_command():
+    """How the user runs this Python, for hints: the interpreter's path relative to the current folder
+    (".venv/bin/python") when it lies inside it, else "python" (an activated virtual environment or
+    the system's)."""
+    try:
+        return str(Path(sys.executable).relative_to(Path.cwd()))
+    except ValueError:
+        return "python"
+
+
+def _number(text, what):
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def youngs_modulus(text):
+    """Young's modulus E in Pa, from 10 Pa to 1e12 Pa."""
+    value = _number(text, "Young's modulus in Pa, for example 1e6")
+    if not 10.0 <= value <= 1e12:
+        raise argparse.ArgumentTypeError(f"Young's modulus {text!r} Pa is outside 10 to 1e12 Pa; rubber is about "
+                                         "1e6, steel 2e11")
+    return value
+
+
+def iterations(text):
+    """Iterations per time step, 1 to 10000."""
+    value = positive(text)
+    if value > 10000:
+        raise argparse.ArgumentTypeError(f"{value} iterations per step is more than 10000; pick fewer")
+    return value
+
+
+def time_step(text):
+    """A time step in s, above 0 and at most 0.1, as a number or a fraction ("1/120")."""
+    what = "a time step in s, for example 0.01 or 1/120"
+    numerator, _, denominator = text.partition("/")
+    value = _number(numerator, what) / (_number(denominator, what) if denominator else 1.0) if denominator != "0" \
+        else 0.0
+    if not 0.0 < value <= 0.1:
+        raise argparse.ArgumentTypeError(f"time step {text!r} s is outside (0, 0.1] s; the scenes use 1/60 = 0.0167")
+    return value
+
+
+def start_taichi(arch):
+    """Start Taichi on ``arch`` without its "[Taichi] Starting on arch=..." line (warnings still show)."""
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stderr(io.StringIO()):
+        solver.ensure_taichi(arch)
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

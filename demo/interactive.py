@@ -16,14 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-import solver
 from solver._ti import ti
 
-from . import colors, scenes
+from . import scenes
+from .cli import python_command, start_taichi
 from .errors import DemoError
 from .render import GHOST_RGB
-from .runner import GhostMode, PanelSim
-from .scenes import Advance
+from .runner import GhostMode, SceneRunner
 
 HELP = ("space play/pause | n step | i one iteration | r reset | left-drag a vertex | "
         "right-drag + WASDQE camera | Esc quit")
@@ -46,9 +45,9 @@ def check_display():
     socket = Path("/tmp/.X11-unix") / f"X{display[1:].split('.')[0]}" if local else None
     if not display or (socket is not None and not socket.exists()):
         found = f"DISPLAY={display} has no X server" if display else "DISPLAY is not set"
+        demo = f"{python_command()} -m demo"
         raise DemoError(f"the interactive window needs a display ({found}): run it on a desktop or under a "
-                        "virtual one (xvfb-run python -m demo interactive); headless rendering works "
-                        "anywhere: python -m demo render")
+                        f"virtual one (xvfb-run {demo} interactive); headless rendering works anywhere: {demo} render")
 
 
 class InteractiveApp:
@@ -58,17 +57,18 @@ class InteractiveApp:
         if not hasattr(ti, "ui"):
             raise DemoError(f"the interactive window needs Taichi's GGUI, which {ti.__name__} lacks; "
                             "pip install taichi==1.7.4 (CPython 3.10-3.13). Headless rendering still works: "
-                            "python -m demo render")
+                            f"{python_command()} -m demo render")
         if show_window:
             check_display()
-        solver.ensure_taichi(arch=arch)
-        self.arch = arch
+        start_taichi(arch)
+        self.arch = None        # what runs now
         try:
             self.window = ti.ui.Window("VBD classroom", tuple(size), vsync=True, show_window=show_window)
         except Exception as e:  # GGUI reports a missing Vulkan loader or driver in several ways
             first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise DemoError("the interactive window needs Vulkan (apt-get install mesa-vulkan-drivers libvulkan1); "
-                            f"Taichi said: {first}. Headless rendering still works: python -m demo render") from None
+                            f"Taichi said: {first}. Headless rendering still works: "
+                            f"{python_command()} -m demo render") from None
         self.show_window = show_window
         self.canvas = self.window.get_canvas()
         self.scene3d = self.window.get_scene()
@@ -86,7 +86,9 @@ class InteractiveApp:
     def load(self, scene_name):
         """Switch to a scene: new simulations, new GPU buffers (allocated here, not per frame)."""
         self.scene = scenes.get(scene_name)
-        self.panels = [PanelSim(self.scene, p, self.arch, ghost_mode=GhostMode.STEP) for p in self.scene.panels]
+        self.runner = SceneRunner(self.scene, self.arch, ghost_mode=GhostMode.STEP, live=True)
+        self.runner.color_by = self.color_by
+        self.panels = self.runner.panels
         self.show_ghost = False
         for p in self.panels:
             p.ghost_enabled = False
@@ -134,21 +136,17 @@ class InteractiveApp:
         self.playing = not self.playing
 
     def single_step(self):
+        self.runner.step()
         for p in self.panels:
-            if self.scene.advance is Advance.ITERATIONS:
-                p.iterate(1)
-            else:
-                p.step()
             self._hold_dragged(p)
 
     def single_iteration(self):
+        self.runner.iterate(1)
         for p in self.panels:
-            p.iterate(1)
             self._hold_dragged(p)
 
     def reset(self):
-        for p in self.panels:
-            p.reset()
+        self.runner.reset()
         self.drag = None
 
     def select_panel(self, index):
@@ -187,7 +185,7 @@ class InteractiveApp:
             p.ghost_enabled = self.show_ghost
 
     def set_color_by(self, color_by):
-        self.color_by = color_by
+        self.color_by = self.runner.color_by = color_by
 
     # ---------------------------------------------------------------------------------------
     # Mouse dragging: pick the vertex nearest the cursor, then keep it under the cursor
@@ -315,23 +313,17 @@ class InteractiveApp:
         return [packed for i, line in enumerate(lines) for packed in _wrap(line, width, first_indent=i > 0)]
 
     def _upload(self):
-        for i, p in enumerate(self.panels):
+        """The runner's panel states (positions, colours, ghosts) into the GPU buffers."""
+        for i, (p, state) in enumerate(zip(self.panels, self.runner.states())):
             if p.failure is not None:       # not drawn
                 continue
-            x = p.sim.positions
+            x = state.positions
             self.vertex_fields[i].from_numpy((x + self.offsets[i]).astype(np.float32))
             self.normal_fields[i].from_numpy(vertex_normals(x, p.faces).astype(np.float32))
-            if self.color_by is scenes.ColorBy.COLOR_SETS:
-                rgb = colors.categorical(p.sim.colors)
-            elif self.color_by is scenes.ColorBy.RESIDUAL:
-                r = np.linalg.norm(p.sim.residual(), axis=1)
-                rgb = colors.sequential(colors.normalise(r, 1e-6, max(float(r.max()), 1e-5), log=True))
-            else:
-                rgb = colors.uniform(len(x))
-            self.rgba_fields[i].from_numpy(np.c_[rgb, np.full(len(x), OPAQUE)].astype(np.float32))
-            if self.show_ghost and p.ghost is not None:
-                self.ghost_fields[i].from_numpy((p.ghost + self.offsets[i]).astype(np.float32))
-                self.ghost_normal_fields[i].from_numpy(vertex_normals(p.ghost, p.faces).astype(np.float32))
+            self.rgba_fields[i].from_numpy(np.c_[state.rgb, np.full(len(x), OPAQUE)].astype(np.float32))
+            if self.show_ghost and state.ghost is not None:
+                self.ghost_fields[i].from_numpy((state.ghost + self.offsets[i]).astype(np.float32))
+                self.ghost_normal_fields[i].from_numpy(vertex_normals(state.ghost, p.faces).astype(np.float32))
 
     def frame(self):
         """Handle input, advance if playing, draw. One call per displayed frame."""

@@ -1,5 +1,6 @@
 """Turn a ``Scene`` into running simulations and, frame by frame, into what should be drawn."""
 import dataclasses
+import enum
 import time
 import warnings
 from dataclasses import dataclass
@@ -11,15 +12,19 @@ from solver.method import multilevel_cycles
 
 from . import colors
 from .errors import DemoError
-from .scenes import Advance, ColorBy
+from .scenes import PROBE_MOVED, Advance, ColorBy, Sweep
 
-# Newton stops once its step is below 1e-6 of the body size (a micrometre on a 1 m bar): far below
-# what a frame shows, and a warm start from the VBD result gets there in two to four iterations
-NEWTON_TOLERANCE = 1e-6
+# The one Newton policy of the demo, that of Simulation(method="newton"), which advances the trajectory
+# ghost: stop once the step is below 1e-8 of the body size, at most 50 iterations. x*, the reference of
+# one VBD step, is solved with the same numbers from a warm start (the VBD result or y).
+NEWTON_TOLERANCE = 1e-8
+NEWTON_ITERATIONS = 50
 DRIFT_SHOWN = 0.01      # m: a sideways drift of the centre of mass below this is not labelled
+PROBE_RGB = (0.95, 0.10, 0.85)
+UNSOLVED_RGB = (0.82, 0.82, 0.84)   # vertices the current iteration has not reached yet (Advance.COLOURS)
 
 
-class GhostMode:
+class GhostMode(enum.Enum):
     """What the translucent ghost of a panel shows."""
 
     TRAJECTORY = "trajectory"   # the converged implicit-Euler trajectory, advanced by Newton every step
@@ -28,15 +33,22 @@ class GhostMode:
 
 @dataclass
 class PanelState:
-    """One panel after a frame: what to draw and what the label says."""
+    """One panel after a frame: what to draw, what the label says, and the measured results as numbers
+    (read these, never the label text)."""
 
-    positions: np.ndarray
-    faces: np.ndarray
-    rgb: np.ndarray
-    ghost: np.ndarray       # reference positions, or None
+    positions: np.ndarray   # (N, 3) m
+    faces: np.ndarray       # (F, 3) boundary triangles
+    rgb: np.ndarray         # (N, 3) vertex colours in [0, 1]
+    ghost: np.ndarray       # (N, 3) reference positions, or None
     lines: list             # label lines
     error: float            # relative error of this step against its Newton solution x*, or None
     trajectory_gap: float = None    # m: max_i |x_i - ghost_i| against the converged trajectory, or None
+    gap_fraction: float = None      # trajectory_gap over the body's longest side ("off the ghost ... %")
+    budget: str = ""                # the solver of a step, e.g. "plain VBD, 140 iterations"
+    step_ms: float = None           # median wall time of the panel's steps so far (ms), when it shows it
+    newton_converged: bool = True   # False: a Newton solve behind the ghost or x* hit its iteration cap
+    wave_cells: float = None        # N_c = h sqrt(E / rho) / dx of the panel's settings
+    probe_moved_at: int = None      # the iteration at which the probe vertex first moved, or None
 
 
 @dataclass(frozen=True)
@@ -60,11 +72,11 @@ class PanelSim:
     """The simulation of one panel, plus its boundary surface for drawing.
 
     With ``ghost_enabled``, every step is measured against x*, the converged Newton solution of the
-    same step from the same state (started at the VBD result or at y, whichever is lower in G, so it
-    usually costs a few Newton iterations): ``error`` = ||x - x*|| / ||x* - x_n||. In ``GhostMode.TRAJECTORY`` (time-step
-    scenes) the ghost is a second simulation with identical settings that is advanced every step
-    by a converged Newton solve of its own step: what implicit Euler would do with an exact solver.
-    In ``GhostMode.STEP`` (iteration-by-iteration scenes and the interactive window) the ghost is x*.
+    same step from the same state (warm-started at the VBD result or at y, whichever is lower in G):
+    ``error`` = ||x - x*|| / ||x* - x_n||. In ``GhostMode.TRAJECTORY`` (time-step scenes) the ghost is
+    ``reference``, a ``solver.Simulation(method="newton")`` with the panel's settings stepped beside
+    it: what implicit Euler does with an exact solver. In ``GhostMode.STEP`` (iteration-by-iteration
+    scenes and the interactive window) the ghost is x*.
     """
 
     def __init__(self, scene, panel, arch="cpu", ghost_mode=None):
@@ -74,8 +86,8 @@ class PanelSim:
         self.tets = np.asarray(mesh.tets)
         self.ghost_enabled = panel.newton_ghost
         if ghost_mode is None:
-            ghost_mode = GhostMode.STEP if scene.advance is Advance.ITERATIONS else GhostMode.TRAJECTORY
-        self.ghost_mode = ghost_mode
+            ghost_mode = GhostMode.TRAJECTORY if scene.advance is Advance.TIME_STEPS else GhostMode.STEP
+        self.ghost_mode = GhostMode(ghost_mode)
         fixed = _mask(panel.fixed, mesh.vertices)
         kinematic = _mask(panel.kinematic, mesh.vertices)
         self._settings = dict(
@@ -92,7 +104,9 @@ class PanelSim:
         self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
         self.length = float(np.ptp(mesh.vertices, axis=0).max())               # m, the body's longest side
         self.rest_tip_height = float(mesh.vertices[self.tip, 2].mean())
-        self.reference = None       # the trajectory ghost's simulation, built on first use
+        self.probe = _nearest_vertex(panel.probe, mesh.vertices, scene.camera.eye)
+        self.matched_ratio = None   # same_wall_time_as: this panel's step time over the other's, timed at start
+        self.reference = None       # the trajectory ghost's Simulation(method="newton"), built on first use
         self.reference_source = None    # an earlier panel whose trajectory ghost is this one's too
         self.reset()
 
@@ -105,7 +119,10 @@ class PanelSim:
         self.ghost = None
         self.error = None
         self.error_converged = True
+        self.ghost_converged = True
         self.iteration = 0
+        self.colours_done = 0       # Advance.COLOURS: colour sets solved in the current iteration
+        self.probe_moved_at = None
         self.in_step = False
         self.failure = None         # why this panel stopped (it diverged), or None while it runs
         self.step_seconds = []      # wall time of every solver step since the reset (s)
@@ -148,15 +165,17 @@ class PanelSim:
             return
         self.finish_step()
         self.start = self.sim.positions
+        self.probe_moved_at = None
         problem = self.sim.step_problem() if self.ghost_enabled else None
-        if self.ghost_enabled and self.ghost_mode == GhostMode.TRAJECTORY and not self._shares_reference_next():
+        if self.ghost_enabled and self.ghost_mode is GhostMode.TRAJECTORY and not self._shares_reference_next():
             self._sync_reference()
         started = time.perf_counter()
-        if not self._guarded(self.sim.step):
+        if not self._guarded(self._solve_step):
             self.ghost, self.error = None, None
             return
         self.step_seconds.append(time.perf_counter() - started)
         self.iteration = self.sim.iterations
+        self._watch_probe()
         if problem is None:
             self.ghost, self.error = None, None
             # a step without the reference breaks its trajectory: when the ghost is switched back on,
@@ -165,19 +184,47 @@ class PanelSim:
             return
         x_star, self.error_converged = _newton(problem, self.sim.positions)
         self.error = solver.relative_error(self.sim.positions, x_star, self.start)
-        if self.ghost_mode != GhostMode.TRAJECTORY:
-            self.ghost = x_star
+        if self.ghost_mode is not GhostMode.TRAJECTORY:
+            self.ghost, self.ghost_converged = x_star, self.error_converged
         elif self._shares_reference():
-            self.ghost = self.reference_source.ghost
+            self.ghost, self.ghost_converged = self.reference_source.ghost, self.reference_source.ghost_converged
         else:
             self.ghost = self._advance_reference()
+
+    def _solve_step(self):
+        """One time step of the panel's solver; a Jacobi panel runs its own sweeps between the
+        simulation's begin_step and end_step."""
+        if self.panel.sweep is Sweep.GAUSS_SEIDEL or self.sim.method is not solver.Method.VBD:
+            self.sim.step()
+            return
+        self.sim.begin_step()
+        self._jacobi(self.sim.iterations)
+        self.sim.end_step()
+
+    def _jacobi(self, count):
+        """``count`` Jacobi iterations: every free vertex solves its 3x3 system H_i dx_i = f_i at once,
+        all from the positions of the previous iteration (VBD's vertex solve without the colouring)."""
+        sim, free = self.sim, self.sim.free_mask
+        for _ in range(count):
+            f, H = sim.local_systems()
+            x = sim.positions
+            x[free] += np.linalg.solve(H[free], f[free][..., None])[..., 0]
+            if not np.isfinite(x).all():    # end_step reports the divergence and returns to x_n
+                break
+            sim.set_positions(x)
+
+    def _run_iterations(self, count):
+        if self.panel.sweep is Sweep.JACOBI:
+            self._jacobi(count)
+        else:
+            self.sim.run_iterations(count)
 
     def _timed_step(self):
         """Wall time (s) of one time step of this panel's solver from its current state, to which the
         simulation returns afterwards."""
         saved = self.sim.save_state()
         started = time.perf_counter()
-        self.sim.step()
+        self._solve_step()
         seconds = time.perf_counter() - started
         self.sim.restore_state(saved)
         return seconds
@@ -193,7 +240,8 @@ class PanelSim:
     def match_wall_time(self, other):
         """Give this panel as many iterations per step as fit in ``other``'s wall time per step. A step
         costs a + b x iterations: measured (relative to ``other``) at the panel's iterations n1 and at
-        n2 = n1 / ratio(n1), then solved for a + b n = 1 (n2 if the measurements give no positive slope)."""
+        n2 = n1 / ratio(n1), then solved for a + b n = 1 (n2 if the measurements give no positive slope);
+        the ratio at the chosen budget is measured once more (``matched_ratio``)."""
         n1 = self.sim.iterations
         r1 = self.relative_step_time(other)
         n2 = max(1, int(round(n1 / r1)))
@@ -202,25 +250,27 @@ class PanelSim:
         if n2 != n1 and (r2 - r1) / (n2 - n1) > 0:
             b = (r2 - r1) / (n2 - n1)
             self.sim.iterations = max(1, int(round(n2 + (1.0 - r2) / b)))
+        self.matched_ratio = self.relative_step_time(other)
         self.scene_settings = self.settings
 
     def budget_line(self):
-        """What the solver of a step does, e.g. "plain VBD, 140 iterations" or "two-level VBD, 5 cycles",
-        with the median measured wall time per step when the panel shows it."""
+        """What the solver of a step does, e.g. "plain VBD, 140 iterations" or "two-level VBD, 5 cycles"."""
         sim = self.sim
         if sim.method is solver.Method.MULTILEVEL:
-            what = f"two-level VBD, {multilevel_cycles(sim.iterations)} cycles"
-        elif sim.method is solver.Method.PCG:
-            what = "Newton-PCG to convergence"
-        elif sim.method is solver.Method.NEWTON:
-            what = "Newton to convergence"
-        elif self.panel.show_step_time:
-            what = f"plain VBD, {sim.iterations} iterations"
-        else:
-            what = f"{sim.iterations} iterations"
+            return f"two-level VBD, {multilevel_cycles(sim.iterations)} cycles"
+        if sim.method is solver.Method.PCG:
+            return "Newton-PCG to convergence"
+        if sim.method is solver.Method.NEWTON:
+            return "Newton to convergence"
+        if self.panel.show_step_time:
+            return f"plain VBD, {sim.iterations} iterations"
+        return f"{sim.iterations} iterations"
+
+    def step_ms(self):
+        """Median measured wall time per step (ms) when the panel shows it, else None."""
         if self.panel.show_step_time and self.step_seconds:
-            what += f" = {1e3 * float(np.median(self.step_seconds)):.0f} ms/step"
-        return what
+            return 1e3 * float(np.median(self.step_seconds))
+        return None
 
     def _guarded(self, advance):
         """Run ``advance()``; a diverging body stops this panel with a message (``failure``, shown in its
@@ -229,24 +279,26 @@ class PanelSim:
             advance()
         except solver.VBDError as e:      # the solver's divergence guard says what diverged and what to change
             self.failure = f"stopped at t = {self.sim.time:.2f} s: {e} Reset to run again."
+            self.in_step = False
         return self.failure is None
 
     def _shares_reference_next(self):
         src = self.reference_source
-        return src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
+        return src is not None and src.ghost_enabled and src.ghost_mode is GhostMode.TRAJECTORY
 
     def _shares_reference(self):
         """True when an earlier panel with the same body, material and time step already advanced the
         converged trajectory this frame (the iteration budget does not change a converged solve)."""
         src = self.reference_source
-        return (src is not None and src.ghost_enabled and src.ghost_mode == GhostMode.TRAJECTORY
+        return (src is not None and src.ghost_enabled and src.ghost_mode is GhostMode.TRAJECTORY
                 and src.ghost is not None and src.sim.frame == self.sim.frame and src.sim.dt == self.sim.dt
                 and src.sim.material == self.sim.material)
 
     def _sync_reference(self):
         """Start the reference trajectory from the current state (first use, or after a reset)."""
         if self.reference is None:
-            self.reference = solver.Simulation(**self._settings)
+            self.reference = solver.Simulation(**{**self._settings, "method": solver.Method.NEWTON,
+                                                  "iterations": NEWTON_ITERATIONS})
         if not self.reference_synced:
             self.reference.reset()
             self.reference.set_positions(self.sim.positions)
@@ -255,51 +307,73 @@ class PanelSim:
             self.reference_synced = True
 
     def _advance_reference(self):
-        """One converged implicit-Euler step of the reference from its own state."""
+        """One step of the reference (Newton to convergence) from its own state; returns its positions."""
         self._sync_reference()      # a no-op unless the reference has never run (or was reset)
-        ref = self.reference
-        problem = ref.step_problem()
-        x_n = ref.positions
-        x, _ = _newton(problem, self.sim.positions)
-        ref.set_positions(x)
-        ref.set_velocities((x - x_n) / ref.dt)
-        ref.time += ref.dt
-        ref.frame += 1
-        return x
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)    # an unconverged solve is said in the label
+            self.reference.step()
+        self.ghost_converged = self.reference.last_iterations < NEWTON_ITERATIONS
+        return self.reference.positions
+
+    def _open_step(self):
+        """Begin an iteration-by-iteration time step, with x* as its ghost when enabled."""
+        self.start = self.sim.positions
+        self.ghost = None
+        if self.ghost_enabled:
+            problem = self.sim.step_problem()
+            self.ghost, self.ghost_converged = _newton(problem, problem.y_with_constraints())
+        self.sim.begin_step()
+        self.iteration = 0
+        self.colours_done = 0
+        self.probe_moved_at = None
+        self.in_step = True
 
     def iterate(self, count=1):
         """``count`` more iterations of the current time step (opening one if needed)."""
         if self.failure is not None:
             return
         if not self.in_step:
-            self.start = self.sim.positions
-            self.ghost = None
-            if self.ghost_enabled:
-                problem = self.sim.step_problem()
-                self.ghost = solver.fast_newton_solve(problem, problem.y_with_constraints(),
-                                                      tolerance=NEWTON_TOLERANCE).x
-            self.sim.begin_step()
-            self.iteration = 0
-            self.in_step = True
+            self._open_step()
         if count:
-            if not self._guarded(lambda: self.sim.run_iterations(count)):
+            if not self._guarded(lambda: self._run_iterations(count)):
                 self.error = None
                 return
             self.iteration += count
+        self._watch_probe()
+        self._measure()
+
+    def solve_next_colour(self):
+        """Solve the next colour set of the current iteration (opening a time step if needed)."""
+        if self.failure is not None:
+            return
+        if not self.in_step:
+            self._open_step()
+        if self.colours_done == self.sim.n_colors:
+            self.colours_done = 0
+        self.sim.solve_color(self.colours_done)
+        self.colours_done += 1
+        if self.colours_done == self.sim.n_colors:
+            self.iteration += 1
         self._measure()
 
     def finish_step(self):
         """Close a time step opened by ``iterate``."""
         if self.in_step:
-            self.sim.end_step()
             self.in_step = False
             # the reference trajectory no longer starts where the body is
             self.reference_synced = False
+            self._guarded(self.sim.end_step)
 
     def _measure(self):
         self.error = None
         if self.ghost is not None:
             self.error = solver.relative_error(self.sim.positions, self.ghost, self.start)
+            self.error_converged = self.ghost_converged
+
+    def _watch_probe(self):
+        if self.probe is not None and self.probe_moved_at is None:
+            if np.linalg.norm(self.sim.positions[self.probe] - self.start[self.probe]) > PROBE_MOVED:
+                self.probe_moved_at = self.iteration
 
     def drift(self):
         """How far (m) the centre of mass has moved across gravity since the start."""
@@ -322,40 +396,89 @@ class PanelSim:
             lines.append(self.failure)
         return lines
 
-    def state(self):
+    def vertex_rgb(self, color_by):
+        """(N, 3) vertex colours for ``color_by`` (a ``ColorBy``), the probe vertex highlighted: the one
+        colour path of the headless frames and the window."""
         x = self.sim.positions
-        by, lo_hi = self.scene.color_by, self.scene.color_range
-        lines = [self.label]
-        if by is ColorBy.DISPLACEMENT:
+        lo_hi = self.scene.color_range
+        if color_by is ColorBy.DISPLACEMENT:
             rgb = colors.sequential(colors.normalise(np.linalg.norm(x - self.start, axis=1), *lo_hi, log=True))
-        elif by is ColorBy.RESIDUAL:
+        elif color_by is ColorBy.RESIDUAL:
             rgb = colors.sequential(colors.normalise(np.linalg.norm(self.sim.residual(), axis=1), *lo_hi, log=True))
-        elif by is ColorBy.COLOR_SETS:
-            rgb = colors.categorical(self.sim.colors)
-            lines.append(f"{self.sim.n_colors} colours for {len(x)} vertices")
+        elif color_by is ColorBy.COLOR_SETS:
+            c = self.sim.colors
+            rgb = colors.categorical(c)
+            if self.scene.advance is Advance.COLOURS:
+                rgb[c >= self.colours_done] = UNSOLVED_RGB
         else:
             rgb = colors.uniform(len(x))
-        if self.scene.advance is Advance.ITERATIONS:
-            lines.append(f"iteration {self.iteration}")
+        if self.probe is not None:
+            rgb[self.probe] = PROBE_RGB
+        return rgb
+
+    def state(self, color_by=None):
+        """This panel's ``PanelState``, coloured by ``color_by`` (default: the scene's)."""
+        by = self.scene.color_by if color_by is None else color_by
+        x = self.sim.positions
+        rgb = self.vertex_rgb(by)
+        lines = [self.label]
+        wave_cells = self.sim.wave_cells
+        n_c = f", N_c = {wave_cells:.0f}" if self.panel.show_wave_cells else ""
+        if self.scene.advance is Advance.COLOURS:
+            lines.append(self._colour_line() + n_c)
+        elif self.scene.advance is Advance.ITERATIONS:
+            lines.append(f"iteration {self.iteration}{n_c}")
         elif by is not ColorBy.COLOR_SETS:
-            lines.append(f"{self.budget_line()}, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
-        gap = None
-        if self.ghost is not None and self.ghost_mode == GhostMode.TRAJECTORY:
+            budget = self.budget_line()
+            ms = self.step_ms()
+            timed = f" = {ms:.0f} ms/step" if ms is not None else ""
+            lines.append(f"{budget}{timed}{n_c}, dt = {_fraction(self.sim.dt)} s, t = {self.sim.time:.2f} s")
+        if by is ColorBy.COLOR_SETS and self.scene.advance is not Advance.COLOURS:
+            lines.append(f"{self.sim.n_colors} colours for {len(x)} vertices")
+        if self.matched_ratio is not None:
+            k = self.panel.same_wall_time_as
+            lines.append(f"at the start its step timed {self.matched_ratio:.2f}x panel {k + 1}'s (median of 7 pairs)")
+        gap = fraction = None
+        if self.ghost is not None and self.ghost_mode is GhostMode.TRAJECTORY:
             tip = self.tip
             drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
             lines.append(f"tip drop {_cm(drop(x))} cm (ghost {_cm(drop(self.ghost))} cm)")
             # the error that has built up over all steps so far: what the audience sees
             gap = float(np.linalg.norm(x - self.ghost, axis=1).max())
-            lines.append(f"off the ghost by {_cm(gap)} cm = {gap / self.length:.0%} of its length")
+            fraction = gap / self.length
+            lines.append(f"off the ghost by {_cm(gap)} cm = {fraction:.0%} of its length")
         if self.error is not None:
-            unsure = "" if self.error_converged else " (Newton not converged: approximate)"
+            unsure = ("" if self.error_converged
+                      else f" (x* approximate: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap)")
             # three decimals read well down to 0.01; below, where only the remedies get, the exponent
             shown = f"{self.error:.3f}" if self.error >= 0.01 else f"{self.error:.1e}"
             lines.append(f"relative error {shown}{unsure}")
+        if self.ghost is not None and self.ghost_mode is GhostMode.TRAJECTORY and not self.ghost_converged:
+            lines.append(f"ghost approximate this step: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap")
+        if self.probe is not None:
+            lines.append(self._probe_line())
         if self.panel.show_inverted:
             lines.append(f"inverted tets: {self.sim.inverted_count()}")
         lines += self.remarks()
-        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap)
+        converged = self.error_converged and (self.ghost is None or self.ghost_converged)
+        return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap, gap_fraction=fraction,
+                          budget=self.budget_line(), step_ms=self.step_ms(), newton_converged=converged,
+                          wave_cells=wave_cells, probe_moved_at=self.probe_moved_at)
+
+    def _colour_line(self):
+        n = self.sim.n_colors
+        if not self.in_step or self.colours_done == 0:
+            return f"iteration {self.iteration + 1}: no colour solved yet ({n} colours)"
+        c = self.colours_done - 1
+        count = int(np.count_nonzero(self.sim.colors == c))
+        iteration = self.iteration + (self.colours_done < n)
+        return f"iteration {iteration}: colour {c + 1} of {n} solved, {count} vertices at once"
+
+    def _probe_line(self):
+        moved = float(np.linalg.norm(self.sim.positions[self.probe] - self.start[self.probe]))
+        if self.probe_moved_at is None:
+            return f"probe (magenta): not moved yet (threshold {PROBE_MOVED:g} m)"
+        return f"probe (magenta): first moved at iteration {self.probe_moved_at}; moved {1e3 * moved:.3g} mm now"
 
 
 class RestPanel:
@@ -376,8 +499,9 @@ class RestPanel:
         self.colors = np.where(pinned, -1, coloring.colors).astype(np.int32)
         self.n_colors = len(np.unique(self.colors[self.colors >= 0]))
 
-    def state(self):
-        if self.scene.color_by is ColorBy.COLOR_SETS:
+    def state(self, color_by=None):
+        by = self.scene.color_by if color_by is None else color_by
+        if by is ColorBy.COLOR_SETS:
             rgb = colors.categorical(self.colors)
             lines = [self.panel.label, f"{self.n_colors} colours for {len(self.start)} vertices"]
         else:
@@ -386,16 +510,20 @@ class RestPanel:
 
 
 class SceneRunner:
-    """All panels of a scene; ``advance()`` produces the next frame's panel states."""
+    """All panels of a scene, the one frame loop of the headless frames and the interactive window:
+    ``advance()`` produces the next frame's panel states; ``step``, ``iterate`` and ``states`` are its
+    parts for a viewer that advances only while playing."""
 
-    def __init__(self, scene, arch="cpu"):
+    def __init__(self, scene, arch="cpu", ghost_mode=None, live=False):
+        """live: simulate every panel even in an ``Advance.REST`` scene (the window lets it move)."""
         self.scene = scene
-        if scene.advance is Advance.REST:
+        self.color_by = scene.color_by
+        self.frame = 0
+        if scene.advance is Advance.REST and not live:
             solver.ensure_taichi(arch)
             self.panels = [RestPanel(scene, panel) for panel in scene.panels]
-            self.frame = 0
             return
-        self.panels = [PanelSim(scene, panel, arch) for panel in scene.panels]
+        self.panels = [PanelSim(scene, panel, arch, ghost_mode) for panel in scene.panels]
         for p in self.panels:
             k = p.panel.same_wall_time_as
             if k is None:
@@ -409,29 +537,73 @@ class SceneRunner:
                 if q.reference_source is None and _same_body(p.panel, q.panel):
                     p.reference_source = q
                     break
-        self.frame = 0
 
-    def advance(self):
+    def override(self, youngs_modulus=None, iterations=None, dt=None):
+        """Run every panel with these settings instead of the scene's (None keeps a setting); each
+        panel's label then names its settings."""
+        fields = {k: v for k, v in dict(youngs_modulus=youngs_modulus, iterations=iterations, dt=dt).items()
+                  if v is not None}
+        if fields and not all(isinstance(p, PanelSim) for p in self.panels):
+            raise DemoError(f"scene {self.scene.name!r} shows the rest shape; it has no material, iterations or "
+                            "dt to change")
+        for p in self.panels if fields else ():
+            p.apply(dataclasses.replace(p.settings, **fields))
+
+    def step(self):
+        """Every panel one frame further: a time step, an iteration or a colour set, as the scene advances."""
         for p in self.panels:
             if self.scene.advance is Advance.ITERATIONS:
-                p.iterate(1 if self.frame > 0 else 0)
-            elif self.scene.advance is Advance.TIME_STEPS:
+                p.iterate(1)
+            elif self.scene.advance is Advance.COLOURS:
+                p.solve_next_colour()
+            elif isinstance(p, PanelSim):       # time steps (the window also moves a rest scene's bodies)
                 p.step()
+
+    def iterate(self, count=1):
+        """``count`` more iterations of every panel's current time step."""
+        for p in self.panels:
+            p.iterate(count)
+
+    def reset(self):
+        for p in self.panels:
+            p.reset()
+        self.frame = 0
+
+    def states(self):
+        """The panels' states now, coloured by ``color_by``."""
+        return [p.state(self.color_by) for p in self.panels]
+
+    def advance(self):
+        """The next frame: the first one of a step-by-parts scene shows the opened step, nothing solved."""
+        if self.frame == 0 and self.scene.advance in (Advance.ITERATIONS, Advance.COLOURS):
+            for p in self.panels:
+                p.iterate(0)
+        else:
+            self.step()
         self.frame += 1
-        return [p.state() for p in self.panels]
+        return self.states()
 
 
 def _newton(problem, guess):
-    """x*, the converged minimiser of the step's G, started from whichever of the inertial prediction y
-    and ``guess`` (the VBD result) is lower in G: a VBD result that has converged (soft body) puts
-    Newton next to the answer; one that has not (stiff body) can be a worse start than y."""
+    """(x*, converged): the minimiser of the step's G by the demo's Newton policy, started from whichever
+    of the inertial prediction y and ``guess`` (the VBD result) is lower in G: a VBD result that has
+    converged (soft body) puts Newton next to the answer; one that has not (stiff body) can be a worse
+    start than y."""
     y = problem.y_with_constraints()
     guess = np.where(problem.free[:, None], guess, problem.constrained_positions)
     start = guess if problem.energy(guess) < problem.energy(y) else y
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)    # reported in the label instead
-        result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE)
+        result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE, max_iterations=NEWTON_ITERATIONS)
     return result.x, result.converged
+
+
+def _nearest_vertex(selectors, vertices, point):
+    """The selected vertex nearest ``point`` (the camera, so that it is in sight), or None without selectors."""
+    if not selectors:
+        return None
+    chosen = np.flatnonzero(_mask(selectors, vertices))
+    return int(chosen[np.argmin(np.linalg.norm(vertices[chosen] - np.asarray(point, float), axis=1))])
 
 
 def _same_body(a, b):

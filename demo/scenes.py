@@ -10,6 +10,7 @@ Scenes are side-by-side panels of one or more bodies. Every panel is its own ``s
 with its own settings, so a sweep is simply several panels that differ in one field.
 """
 import enum
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -37,7 +38,15 @@ class Advance(enum.Enum):
 
     TIME_STEPS = "time steps"    # one full time step per frame
     ITERATIONS = "iterations"    # one solver iteration of a single time step per frame
+    COLOURS = "colours"          # one colour set of a VBD iteration per frame (the sweep, colour by colour)
     REST = "rest"                # nothing moves: the rest shape (needs only the mesh and its colouring)
+
+
+class Sweep(enum.Enum):
+    """How one iteration visits the vertices."""
+
+    GAUSS_SEIDEL = "coloured Gauss-Seidel"   # colour after colour, each colour in parallel (VBD)
+    JACOBI = "Jacobi"                        # every vertex at once, all from the same old positions
 
 
 class Side(enum.Enum):
@@ -64,15 +73,19 @@ class AssetMesh:
     path: str
     resolution: int = None
     offset: tuple = (0.0, 0.0, 0.0)
+    expect_slivers: bool = False    # the scene is about a mesh full of slivers: no quality warning
 
     def build(self):
         path = REPO_ROOT / self.path
         if not path.exists():
-            raise DemoError(f"mesh asset {self.path} not found under {REPO_ROOT}")
-        if self.resolution is None:
-            mesh = solver.load_mesh(str(path))
-        else:
-            mesh = solver.load_mesh(str(path), resolution=self.resolution)
+            raise DemoError(f"mesh asset {self.path} not found in this checkout; assets/make_assets.py makes it")
+        with warnings.catch_warnings():
+            if self.expect_slivers:     # the scene shows what slivers do; its description says so
+                warnings.simplefilter("ignore", solver.MeshQualityWarning)
+            if self.resolution is None:
+                mesh = solver.load_mesh(str(path))
+            else:
+                mesh = solver.load_mesh(str(path), resolution=self.resolution)
         if any(self.offset):
             mesh = solver.TetMesh(mesh.vertices + np.asarray(self.offset, float), mesh.tets, mesh.original_index)
         return mesh
@@ -143,6 +156,9 @@ class Panel:
     # fit in that panel's wall time per step, measured once when the scene starts (demo.runner)
     same_wall_time_as: int = None
     show_step_time: bool = False   # label the method, its budget and the measured wall time per step
+    show_wave_cells: bool = False  # label N_c = h sqrt(E / rho) / dx, the cells an elastic wave crosses per step
+    sweep: Sweep = Sweep.GAUSS_SEIDEL
+    probe: tuple = ()              # selectors of the vertices whose one nearest the camera is highlighted and watched
 
 
 @dataclass(frozen=True)
@@ -192,9 +208,18 @@ GHOST_NOTES = (
 )
 
 
-def _bar(label, youngs_modulus, iterations=20, mesh=SHORT_BAR, ghost=True):
-    return Panel(label=label, mesh=mesh, material=_material(youngs_modulus),
-                 iterations=iterations, fixed=PINNED_LEFT, newton_ghost=ghost)
+# the short bar from the front and a little above, filling the frame's width
+CLOSE_BAR_CAMERA = Camera(eye=(0.25, -0.8, 0.25), target=(0.25, 0.0, -0.02), fov_degrees=35.0)
+# Jacobi at 1e5 Pa: stiff enough that all-at-once solves overshoot, soft enough to stay on screen
+JACOBI_E = 1e5
+PROBE_MOVED = 1e-12     # m: a probe vertex that has moved more than this has "moved at all" (chapter 5)
+# two iterations of the 20x4x4 bar's colours, plus the frame before the first colour
+SWEEP_BY_COLOUR_FRAMES = 2 * 8 + 1
+
+
+def _bar(label, youngs_modulus, iterations=20, mesh=SHORT_BAR, ghost=True, sweep=Sweep.GAUSS_SEIDEL):
+    return Panel(label=label, mesh=mesh, material=_material(youngs_modulus), iterations=iterations,
+                 fixed=PINNED_LEFT, newton_ghost=ghost, show_wave_cells=True, sweep=sweep)
 
 
 SCENES = {scene.name: scene for scene in [
@@ -246,15 +271,16 @@ SCENES = {scene.name: scene for scene in [
                     "measured when the scene starts. Both carry the converged ghost. Plain VBD moves "
                     "information one ring of elements per sweep and still sags far below its ghost; the "
                     "two-level bar follows it.",
-        panels=(Panel(label="plain VBD, same wall time per step", material=_material(1e6), mesh=SHORT_BAR,
+        panels=(Panel(label="plain VBD, iterations fitted to the two-level step's time", material=_material(1e6),
+                      mesh=SHORT_BAR,
                       iterations=20, fixed=PINNED_LEFT, newton_ghost=True, same_wall_time_as=1,
                       show_step_time=True),
                 Panel(label="remedy: two-level VBD (method='multilevel')", material=_material(1e6),
                       mesh=SHORT_BAR, iterations=20, fixed=PINNED_LEFT, newton_ghost=True,
                       method=solver.Method.MULTILEVEL, show_step_time=True)),
         camera=BAR_CAMERA, grid=BACK_WALL, frames=36, fps=20,
-        notes=GHOST_NOTES + ("ms/step: median wall time per step of the panel's solver (not of the ghost); plain "
-                             "VBD's iterations are set at the start",),
+        notes=GHOST_NOTES + ("ms/step: median time of the panel's own steps so far (ghost excluded); plain VBD's "
+                             "iterations are fitted at the start",),
     ),
     Scene(
         name="propagation",
@@ -270,6 +296,50 @@ SCENES = {scene.name: scene for scene in [
         grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=41, fps=5,
         color_by=ColorBy.DISPLACEMENT, color_range=(1e-6, 5e-2), advance=Advance.ITERATIONS,
         notes=("colour: distance moved in this step (log scale); red ghost: converged Newton step",),
+    ),
+    Scene(
+        name="jacobi_vs_colouring",
+        title="Without colours: Jacobi (every vertex at once) vs coloured Gauss-Seidel, 20 iterations per step",
+        description="The stiffness sweep's bar (0.5 m, 20x4x4 cells, pinned left, dt = 1/60 s) at E = 1e5 Pa twice. "
+                    "Right: VBD's coloured Gauss-Seidel, colour after colour, each vertex solving with the "
+                    "neighbours already moved in this sweep. Left: Jacobi, every vertex solving at once "
+                    "against the positions of the previous iteration. Each vertex's solve assumes its "
+                    "neighbours stay put; when all of them move at once, the moves add up and overshoot, "
+                    "so Jacobi falls behind the ghost or runs away where the colouring converges.",
+        panels=(_bar("Jacobi: all vertices at once", JACOBI_E, sweep=Sweep.JACOBI),
+                _bar("coloured Gauss-Seidel (VBD)", JACOBI_E)),
+        camera=BAR_CAMERA, grid=BACK_WALL, frames=36, fps=20,
+        notes=GHOST_NOTES,
+    ),
+    Scene(
+        name="probe",
+        title="How many iterations until the far end feels it? One step, iteration by iteration",
+        description="A stiff bar (0.5 m, 20x4x4 cells, E = 1e6 Pa, no gravity) whose left end is moved down 5 cm "
+                    "at the start of one time step, initial guess x_n. The probe, the free right end's vertex "
+                    "nearest the camera, is highlighted; its label says at which iteration it first moved at all "
+                    f"(by more than {PROBE_MOVED:g} m, the threshold of lecture notes chapter 5): about one ring "
+                    "of elements per iteration.",
+        panels=(Panel(label="E = 1e6 Pa, left end moved 5 cm; probe at the free end", material=_material(1e6),
+                      mesh=SHORT_BAR, iterations=1, kinematic=(EndFace(0, Side.LOW),), motion=Shift(),
+                      initial_guess=solver.InitialGuess.PREVIOUS, probe=(EndFace(0, Side.HIGH),),
+                      show_wave_cells=True),),
+        camera=CLOSE_BAR_CAMERA, grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=31, fps=5,
+        color_by=ColorBy.DISPLACEMENT, color_range=(1e-6, 5e-2), advance=Advance.ITERATIONS,
+        notes=("colour: distance moved in this step (log scale); magenta: the probe vertex",),
+    ),
+    Scene(
+        name="sweep_by_colour",
+        title="One VBD iteration, colour by colour",
+        description="A stiff bar (0.5 m, 20x4x4 cells, E = 1e6 Pa, no gravity) pinned on the left, its right end "
+                    "moved down 5 cm. Each frame solves one more colour set: all its vertices at once, each "
+                    "with its neighbours held where the earlier colours left them. Solved colours are shown "
+                    "in their colour, the rest in grey; two iterations in all.",
+        panels=(Panel(label="E = 1e6 Pa, right end moved 5 cm", material=_material(1e6), mesh=SHORT_BAR,
+                      iterations=1, fixed=PINNED_LEFT, kinematic=(EndFace(0, Side.HIGH),), motion=Shift(),
+                      initial_guess=solver.InitialGuess.PREVIOUS, show_wave_cells=True),),
+        camera=CLOSE_BAR_CAMERA,
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=SWEEP_BY_COLOUR_FRAMES, fps=2,
+        color_by=ColorBy.COLOR_SETS, advance=Advance.COLOURS,
     ),
     Scene(
         name="colouring",
@@ -322,6 +392,9 @@ class Highest:
         return mask
 
 
+SLIVER_BUNNY = AssetMesh("assets/bunny_slivers.vtu", offset=(0.0, 0.0, 0.3), expect_slivers=True)
+
+
 def _real_shapes():
     """Meshes nobody here drew: the Stanford Bunny and Keenan Crane's Spot (assets/README.md), made
     into tets by fTetWild, hung and dropped; and a bunny meshed without shape optimisation, whose
@@ -345,10 +418,10 @@ def _real_shapes():
                   mesh=AssetMesh("assets/bunny.vtu", offset=(0.0, 0.0, 0.3)), iterations=50, fixed=hang,
                   show_inverted=True),
             Panel(label="bunny, 4,166 slivers, hung: plain VBD", material=_material(1e5),
-                  mesh=AssetMesh("assets/bunny_slivers.vtu", offset=(0.0, 0.0, 0.3)), iterations=50, fixed=hang,
+                  mesh=SLIVER_BUNNY, iterations=50, fixed=hang,
                   show_inverted=True),
             Panel(label="bunny, 4,166 slivers, hung: keep_orientation", material=_material(1e5),
-                  mesh=AssetMesh("assets/bunny_slivers.vtu", offset=(0.0, 0.0, 0.3)), iterations=50, fixed=hang,
+                  mesh=SLIVER_BUNNY, iterations=50, fixed=hang,
                   keep_orientation=True, show_inverted=True),
             Panel(label="Spot (3,751 tets, E = 1e6 Pa), dropped", material=_material(1e6),
                   mesh=AssetMesh("assets/spot.vtu", offset=(0.0, 0.0, 0.05)), iterations=50, show_inverted=True),

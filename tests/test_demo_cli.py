@@ -63,6 +63,14 @@ def test_existing_user_file_is_never_touched(tmp_path, capsys):
     (["render", "--arch", "tpu"], "invalid choice: 'tpu'"),
     (["render", "--size", "65x48", "--video", "mp4"], "mp4 needs an even width and height"),
     (["interactive", "nope"], "unknown scene 'nope'"),
+    (["render", "--youngs-modulus", "-5"], "outside 10 to 1e12 Pa"),
+    (["render", "--youngs-modulus", "nan"], "expected Young's modulus in Pa"),
+    (["render", "--iterations", "0"], "expected a positive whole number"),
+    (["render", "--iterations", "100000"], "more than 10000"),
+    (["render", "--dt", "0"], "outside (0, 0.1] s"),
+    (["render", "--dt", "1/0"], "outside (0, 0.1] s"),
+    (["render", "--dt", "soon"], "expected a time step in s"),
+    (["render", "colouring", "--dt", "0.01"], "shows the rest shape"),
 ])
 def test_bad_arguments_give_one_line_errors(capsys, tmp_path, argv, match):
     one_line_error(capsys, argv + ["--out", str(tmp_path)] if argv[0] == "render" else argv, match)
@@ -110,6 +118,56 @@ def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tm
     assert rendered.returncode == 0, rendered.stderr
     assert "precision" not in rendered.stdout + rendered.stderr, rendered.stderr
     assert "[Taichi] version" not in rendered.stdout
+    assert "[Taichi]" not in rendered.stdout + rendered.stderr, rendered.stderr
+
+
+@pytest.mark.slow
+def test_arch_gpu_without_a_gpu_warns_once_in_one_line(tmp_path):
+    from solver import _ti as shim
+
+    if shim.is_arch_supported(shim.ti.cuda):
+        pytest.skip("a CUDA GPU is here")
+    rendered = subprocess.run([sys.executable, "-m", "demo", "render", "twist", "--frames", "1", "--size", "32x32",
+                               "--video", "none", "--arch", "gpu", "--out", str(tmp_path / "g")], cwd=REPO,
+                              capture_output=True, text=True, timeout=300)
+    assert rendered.returncode == 0, rendered.stderr
+    assert rendered.stderr == "warning: no CUDA GPU is available here; running on the CPU instead\n"
+
+
+def test_the_default_render_run_twice_keeps_the_first(tmp_path, monkeypatch, capsys):
+    """Without --out a second run writes out/SCENE_2 and leaves out/SCENE as it was; with --out it refuses."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["render", "twist", "--frames", "1", "--size", "32x32", "--video", "none"]
+    assert main(argv) == 0
+    first = (tmp_path / "out" / "twist" / "frame_0000.png").read_bytes()
+    assert main(argv) == 0
+    assert "out/twist_2/frame_0000.png" in capsys.readouterr().out
+    assert (tmp_path / "out" / "twist" / "frame_0000.png").read_bytes() == first
+    assert (tmp_path / "out" / "twist_2" / "frame_0000.png").exists()
+    one_line_error(capsys, argv + ["--out", "out/twist"], "--overwrite")
+
+
+def test_overrides_reach_every_panel_and_its_label():
+    from demo import scenes
+    from demo.runner import SceneRunner
+
+    runner = SceneRunner(scenes.get("resolution_sweep"))
+    runner.override(youngs_modulus=2e5, iterations=7, dt=0.01)
+    states = runner.advance()
+    for p, state in zip(runner.panels, states):
+        assert (p.sim.material.youngs_modulus, p.sim.iterations, p.sim.dt, p.sim.frame) == (2e5, 7, 0.01, 1)
+        assert state.lines[0] == "changed: E = 2e5 Pa, 7 it., dt = 1/100 s"
+        assert state.wave_cells == pytest.approx(p.sim.wave_cells)
+
+
+def test_hints_name_the_python_that_runs(tmp_path, monkeypatch):
+    from demo.cli import python_command
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "executable", str(tmp_path / ".venv" / "bin" / "python"))
+    assert python_command() == ".venv/bin/python"
+    monkeypatch.setattr(sys, "executable", "/elsewhere/bin/python")
+    assert python_command() == "python"
 
 
 @pytest.mark.backend

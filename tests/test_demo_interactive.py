@@ -4,6 +4,7 @@ import dataclasses
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -217,3 +218,42 @@ def test_drop_scene_labels_its_sideways_drift():
     p.sim.set_positions(x + (0.03, 0.04, -0.2))             # 5 cm sideways, 20 cm down
     assert p.drift() == pytest.approx(0.05)
     assert any(line.startswith("drifted 5 cm sideways") for line in p.state().lines)
+
+
+class _StubCamera:
+    """What InteractiveApp asks of a GGUI camera while it aims it."""
+
+    def __getattr__(self, name):
+        return lambda *args, **kwargs: None
+
+
+def test_the_window_views_the_scene_runner_without_vulkan():
+    """The window's controls and GPU upload, with a stub in place of the GGUI window (the tests above need
+    Vulkan): one SceneRunner advances the panels, and the uploaded colours are the runner's states'."""
+    from demo.interactive import InteractiveApp
+    from demo.runner import GhostMode, SceneRunner
+
+    app = InteractiveApp.__new__(InteractiveApp)
+    app.arch, app.show_window, app.drag, app.playing, app.show_ghost = None, False, None, False, False
+    app.color_by = scenes.ColorBy.BODY
+    app.window = types.SimpleNamespace(get_window_shape=lambda: (320, 180))
+    app.camera = _StubCamera()
+    app.load("sweep_by_colour")
+    assert isinstance(app.runner, SceneRunner) and app.panels is app.runner.panels
+    assert all(p.ghost_mode is GhostMode.STEP for p in app.panels)
+    app.set_color_by(scenes.ColorBy.COLOR_SETS)
+    app.single_step()                       # this scene's frame: one colour set
+    (panel,) = app.panels
+    assert panel.colours_done == 1
+    app._upload()
+    rgba = app.rgba_fields[0].to_numpy()
+    (state,) = app.runner.states()
+    np.testing.assert_allclose(rgba[:, :3], state.rgb, atol=1e-6)
+    app.load("stiffness_sweep")
+    app.set_ghost(True)
+    app.single_step()
+    assert all(p.sim.frame == 1 and p.ghost is not None and np.isfinite(p.error) for p in app.panels)
+    app.single_iteration()
+    assert all(p.iteration == 1 and p.in_step for p in app.panels)
+    app.reset()
+    assert all(p.sim.frame == 0 and p.failure is None for p in app.panels) and app.runner.frame == 0

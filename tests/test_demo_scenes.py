@@ -268,3 +268,147 @@ def test_same_wall_time_budget_scales_the_iterations(monkeypatch):
                                              scene.panels[1]))
     with pytest.raises(DemoError, match="same_wall_time_as=0 must be the index of another panel"):
         SceneRunner(bad)
+
+
+def _body_boxes(scene, states, viewports):
+    """(x0, y0, x1, y1) pixel box of every panel's body and ghost, projected by the scene's camera."""
+    basis, eye = scene.camera.basis(), np.asarray(scene.camera.eye)
+    boxes = []
+    for state, vp in zip(states, viewports):
+        points = state.positions if state.ghost is None else np.vstack([state.positions, state.ghost])
+        d = (points - eye) @ basis.T
+        focal = 0.5 * vp.height / np.tan(np.radians(scene.camera.fov_degrees) / 2)
+        col = vp.x + 0.5 * vp.width + focal * d[:, 0] / d[:, 2]
+        row = vp.y + 0.5 * vp.height - focal * d[:, 1] / d[:, 2]
+        boxes.append((col.min(), row.min(), col.max(), row.max()))
+    return boxes
+
+
+@pytest.mark.parametrize("name, frames", [pytest.param("stiffness_sweep", 36, marks=pytest.mark.slow),
+                                          ("resolution_sweep", 12),
+                                          pytest.param("remedy", 8, marks=pytest.mark.slow)])
+def test_labels_are_never_covered_by_the_bodies(name, frames):
+    """Every label piece drawn lies in its panel's label band, and no body or ghost, projected over the
+    scene's frames, reaches into a label (the clamped bar end used to hide "off the ghost")."""
+    from demo.compose import FrameComposer
+
+    scene = scenes.get(name)
+    runner = SceneRunner(scene)
+    composer = FrameComposer(scene, 640, 360)
+    for _ in range(frames):
+        states = runner.advance()
+        composer.compose(states)
+        assert len(composer.label_boxes) >= sum(len(s.lines) for s in states)
+        for body in _body_boxes(scene, states, composer.viewports):
+            for label in composer.label_boxes:
+                apart = body[2] < label[0] or label[2] < body[0] or body[3] < label[1] or label[3] < body[1]
+                assert apart, (name, body, label)
+        for label in composer.label_boxes:
+            assert composer.title_band <= label[1] and label[3] <= composer.title_band + composer.label_band
+
+
+def test_jacobi_falls_behind_the_coloured_sweep():
+    """One Jacobi iteration is x_i + H_i^-1 f_i for every free vertex from the same positions; over a few
+    steps the all-at-once solves end much further from the Newton step x* than the coloured sweep."""
+    scene = scenes.get("jacobi_vs_colouring")
+    assert "jacobi" in scene.name
+    runner = SceneRunner(scene)
+    jacobi, coloured = runner.panels
+    assert jacobi.panel.sweep is scenes.Sweep.JACOBI and coloured.panel.sweep is scenes.Sweep.GAUSS_SEIDEL
+    for _ in range(4):
+        states = runner.advance()
+    assert states[0].error > 2 * states[1].error, [s.error for s in states]
+    assert states[0].trajectory_gap > 1.5 * states[1].trajectory_gap
+    sim = jacobi.sim
+    sim.begin_step()
+    f, H = sim.local_systems()
+    expected = sim.positions
+    free = sim.free_mask
+    expected[free] += np.linalg.solve(H[free], f[free][..., None])[..., 0]
+    jacobi._jacobi(1)
+    np.testing.assert_allclose(sim.positions, expected, rtol=0, atol=1e-12)
+    sim.end_step()
+
+
+def test_probe_label_gives_the_first_iteration_it_moved():
+    """The probe (the free end's vertex nearest the camera) first moves at the iteration its label says:
+    not at the one before, and only after the front has crossed most of the 20-cell bar."""
+    from demo.runner import PROBE_RGB
+
+    scene = scenes.get("probe")
+    assert "probe" in scene.name
+    runner = SceneRunner(scene)
+    (panel,) = runner.panels
+    x = panel.sim.mesh.vertices
+    assert x[panel.probe, 0] == x[:, 0].max()
+    moved = []
+    for _ in range(scene.frames):
+        (state,) = runner.advance()
+        moved.append(np.linalg.norm(state.positions[panel.probe] - panel.start[panel.probe]))
+    first = state.probe_moved_at
+    assert first is not None and 5 <= first <= 20
+    assert moved[first] > scenes.PROBE_MOVED >= moved[first - 1]      # frame k shows iteration k
+    assert f"first moved at iteration {first};" in state.lines[-1]
+    np.testing.assert_array_equal(state.rgb[panel.probe], PROBE_RGB)
+
+
+def test_one_iteration_colour_by_colour_moves_only_the_solved_colours():
+    """Frame k of the first iteration has solved colours 0..k-1: exactly those vertices have moved from x_n
+    (the guess), the others are drawn grey; the scene shows two full iterations."""
+    from demo.runner import UNSOLVED_RGB
+
+    scene = scenes.get("sweep_by_colour")
+    runner = SceneRunner(scene)
+    (panel,) = runner.panels
+    n = panel.sim.n_colors
+    assert scene.frames == 2 * n + 1
+    colors = panel.sim.colors
+    runner.advance()
+    for k in range(1, n + 1):
+        (state,) = runner.advance()
+        moved = np.linalg.norm(state.positions - panel.start, axis=1) > 0
+        solved = (colors >= 0) & (colors < k)
+        assert not (moved & (colors >= k)).any(), k
+        assert moved[solved].any(), k
+        np.testing.assert_array_equal(state.rgb[(colors >= k)], np.tile(UNSOLVED_RGB, ((colors >= k).sum(), 1)))
+        assert f"colour {k} of {n} solved, {(colors == k - 1).sum()} vertices at once" in state.lines[1]
+    assert panel.iteration == 1
+
+
+def test_sweeps_label_n_c_and_the_ghost_is_a_newton_simulation():
+    import solver
+    from demo.runner import GhostMode
+
+    assert issubclass(GhostMode, __import__("enum").Enum)
+    runner = SceneRunner(scenes.get("stiffness_sweep"))
+    states = runner.advance()
+    soft, stiff = runner.panels
+    assert stiff.reference.method is solver.Method.NEWTON and soft.reference.method is solver.Method.NEWTON
+    for p, state in zip(runner.panels, states):
+        assert state.wave_cells == pytest.approx(p.sim.wave_cells)
+        assert f"N_c = {p.sim.wave_cells:.0f}," in state.lines[1]
+        assert state.gap_fraction == pytest.approx(state.trajectory_gap / p.length)
+    assert states[1].wave_cells > 10 * states[0].wave_cells / 2       # 1e6 Pa against 1e4 Pa: sqrt(100) = 10x
+
+
+def test_an_unconverged_newton_reference_is_said_on_the_label(monkeypatch):
+    """With a 1-iteration cap the Newton behind x* and the ghost cannot converge: the state says so as a
+    field, and the label explains the error is measured against an approximate x*."""
+    from demo import runner as runner_module
+
+    monkeypatch.setattr(runner_module, "NEWTON_ITERATIONS", 1)
+    runner = SceneRunner(scenes.get("stiffness_sweep"))
+    _, stiff = runner.advance()
+    assert not stiff.newton_converged
+    assert any("x* approximate: Newton stopped at its 1-iteration cap" in line for line in stiff.lines)
+    assert any(line.startswith("ghost approximate this step") for line in stiff.lines)
+
+
+def test_the_sliver_scene_loads_its_mesh_without_a_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scenes.SLIVER_BUNNY.build()
+    with pytest.warns(UserWarning, match="slivers"):
+        scenes.AssetMesh("assets/bunny_slivers.vtu").build()
