@@ -445,7 +445,7 @@ def section_remedy(out, full, size):
     scene = scenes.get("remedy")
     frame = REMEDY_FRAME
     states = _render_scene(scene, (frame,), out, "remedy", size)[frame]
-    budgets = [s.lines[1].split(", dt = ")[0] for s in states]
+    budgets = [s.budget + (f" = {s.step_ms:.0f} ms/step" if s.step_ms is not None else "") for s in states]
     mesh = scene.panels[0].mesh.build()
     length = float(np.ptp(mesh.vertices, axis=0).max())
     numbers = {"remedy.wave_cells": f"{wave_cells(mesh, scene.panels[0].material, scene.dt):.0f}",
