@@ -12,9 +12,14 @@ Regions inside Taichi functions cannot raise at run time, so the solver calls
 ``solver.todo.require_implemented`` on those functions before it compiles them: the starter stops
 with the same message instead of a Taichi compile error.
 
-The starter also gets a student README (the task list, points and how to grade) and the graded
-tests from ``homework/grading/`` as ``grading/``; ``pytest`` in the starter runs them and prints the
-score per task.
+The starter also gets a student README (the task list, points and how to grade), the graded tests
+from ``homework/grading/`` as ``grading/`` and ``grading/reference.npz``, the converged steps the
+graded tests compare against (`REFERENCE_CASES`, solved by the project's global Newton when the starter
+is written: the starter ships no global solver). ``pytest`` in the starter runs the graded tests and
+prints the score per task.
+
+``python -m demo homework grade SUBMISSION`` grades a student's starter (or a folder of them) for
+marks: see `grade`.
 
 This module imports nothing heavy: the graded tests read ``TASKS`` from it.
 """
@@ -23,8 +28,11 @@ import ast
 import io
 import json
 import re
+import os
 import shutil
+import subprocess
 import sys
+import tempfile
 import textwrap
 import tokenize
 from dataclasses import dataclass, field
@@ -49,7 +57,21 @@ ANSWER_PATHS = {
                         "(`benchmarks/baselines.py`: the VBD sweep in numpy and a Jacobi sweep) are tasks 1 and 3 "
                         "written out",
 }
-SKIP_PATHS = set(ANSWER_PATHS)
+ANSWER_PATHS[Path("solver") / "newton"] = (
+    "the global solvers (Newton, Newton-PCG, two-level VBD, the sparse Cholesky) assemble every vertex's "
+    "f_i and H_i, tasks 1 and 3 in another form; the graded tests compare against converged steps stored in "
+    "`grading/reference.npz` instead, and `method=` other than `'vbd'` and `newton_reference()` stop with "
+    "one line")
+# Left out because they cannot work without the finished solver and the global solvers; no answer in them.
+LEFT_OUT = {
+    Path("demo") / "figures.py": "the project's `figures` command, which redraws the lecture figures and checks "
+                                 "the notes' numbers, needs the finished solver and the global solvers; the "
+                                 "figures it drew are in `lecture_notes/figures/`",
+}
+SKIP_PATHS = set(ANSWER_PATHS) | set(LEFT_OUT)
+# Packages only the global solvers use: not in the starter's pyproject.toml and requirements.txt.
+GLOBAL_SOLVER_PACKAGES = ("cvxopt", "qdldl", "cholespy")
+REFERENCE_FILE = "reference.npz"
 SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
 
 
@@ -131,6 +153,46 @@ TASKS = (
 )
 
 TASKS_BY_ID = {task.id: task for task in TASKS}
+
+
+@dataclass(frozen=True)
+class ReferenceCase:
+    """A cantilever bar whose first converged implicit Euler step the graded tests compare against."""
+
+    cells: tuple                 # (nx, ny, nz) cubes of 6 tets
+    size: tuple                  # (lx, ly, lz) in metres
+    youngs_modulus: float        # Pa
+
+    def simulation(self, **kwargs):
+        import solver
+
+        return cantilever(solver.box_mesh(size=self.size, cells=self.cells), self.youngs_modulus, **kwargs)
+
+
+REFERENCE_CASES = {
+    "soft_bar": ReferenceCase(cells=(8, 2, 2), size=(0.4, 0.1, 0.1), youngs_modulus=1e4),
+    "stiff_long_bar": ReferenceCase(cells=(16, 2, 2), size=(0.8, 0.1, 0.1), youngs_modulus=1e6),
+}
+
+
+def cantilever(mesh, youngs_modulus, **kwargs):
+    """A `Simulation` of `mesh` pinned at x = min: nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, inertial guess."""
+    import solver
+
+    material = solver.Material(youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=1000.0)
+    fixed = mesh.vertices[:, 0] < mesh.vertices[:, 0].min() + 1e-9
+    kwargs.setdefault("initial_guess", solver.InitialGuess.INERTIAL)
+    return solver.Simulation(mesh, material, dt=1 / 60, fixed=fixed, **kwargs)
+
+
+def write_references(path: Path) -> None:
+    """Solve each `REFERENCE_CASES` step to convergence with the project's Newton; save x* (N, 3) per case."""
+    import numpy as np
+
+    import solver
+
+    solver.ensure_taichi("cpu")
+    np.savez(path, **{name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()})
 
 
 def _error(message):
@@ -299,7 +361,8 @@ def _student_readme(root: Path, regions) -> str:
     template = (root / README_TEMPLATE).read_text(encoding="utf-8")
     table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"
              + "\n".join(rows) + f"\n| | | **total** | **{total}** | | |")
-    left_out = "\n".join(f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items()))
+    left_out = "\n".join([f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items())]
+                         + [f"* `{path.as_posix()}`: {why}." for path, why in sorted(LEFT_OUT.items())])
     return (template.replace("{{TASK_TABLE}}", table).replace("{{TASK_SECTIONS}}", "\n".join(sections))
             .replace("{{TOTAL}}", str(total)).replace("{{LEFT_OUT}}", left_out))
 
@@ -309,6 +372,13 @@ def _pytest_ini(text: str) -> str:
     if re.search(r"^testpaths\s*=.*$", text, flags=re.M):
         return re.sub(r"^testpaths\s*=.*$", "testpaths = grading", text, flags=re.M)
     return text.rstrip("\n") + "\ntestpaths = grading\n"
+
+
+def _without_global_solvers(text: str) -> str:
+    """A requirements or pyproject text without the lines naming the global solvers or their packages."""
+    dropped = (*GLOBAL_SOLVER_PACKAGES, "solver/newton", "solver.newton")
+    kept = [line for line in text.splitlines(keepends=True) if not any(word in line for word in dropped)]
+    return "".join(kept).replace(', "benchmarks"]', "]")
 
 
 def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: bool = False):
@@ -338,6 +408,9 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(strip_regions(text, found), encoding="utf-8")
             elif rel == Path("pytest.ini"):
                 target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
+            elif rel.name in ("pyproject.toml", "requirements.txt"):
+                text = (root / rel).read_text(encoding="utf-8")
+                target.write_text(_without_global_solvers(text), encoding="utf-8")
             else:
                 shutil.copyfile(root / rel, target)
         if not (root / "pytest.ini").exists():
@@ -345,9 +418,11 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
         grading = root / GRADING_SOURCE
         shutil.copytree(grading, out / "grading", dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache"))
+        write_references(out / "grading" / REFERENCE_FILE)
         _refresh_starter_notes(out)
         if (root / "README.md").exists():
             shutil.copyfile(root / "README.md", out / "PROJECT_README.md")
+            _drop_missing_pictures(out / "PROJECT_README.md")
         (out / "README.md").write_text(_student_readme(root, regions), encoding="utf-8")
         (out / STARTER_MARKER).write_text(json.dumps(
             {"tasks": [t.id for t in TASKS],
@@ -362,14 +437,36 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
     return regions
 
 
+IMAGE = re.compile(r"!\[(?P<alt>[^\]]*)\]\((?P<target>[^)\s]+)\)")
+
+
 def _refresh_starter_notes(out: Path):
     """Re-quote the code excerpts of the starter's lecture notes from the starter's own sources, so
-    that the notes show the TODOs and no solution code."""
-    from .figures import chapters, refresh_excerpts
+    that the notes show the TODOs and no solution code; an excerpt of a file or a picture the starter
+    leaves out becomes a line saying so."""
+    from .figures import EXCERPT, chapters, function_source
 
-    for path in chapters(out / "lecture_notes"):
+    def excerpt(match):
+        if not (out / match["path"]).exists():
+            return f"*(`{match['path']}` is not in the homework starter; see its README)*"
+        return match.group(1) + function_source(out / match["path"], match["name"]) + match.group(5)
+
+    for path in sorted((out / "lecture_notes").glob("*.md")):
         text = path.read_text(encoding="utf-8")
-        path.write_text(refresh_excerpts(text, root=out), encoding="utf-8")
+        if path in chapters(out / "lecture_notes"):
+            text = EXCERPT.sub(excerpt, text)
+        path.write_text(text, encoding="utf-8")
+        _drop_missing_pictures(path)
+
+
+def _drop_missing_pictures(path: Path):
+    """Replace each picture link of the Markdown file `path` whose file is absent by a line saying so."""
+    def image(match):
+        if "://" in match["target"] or (path.parent / match["target"]).exists():
+            return match.group(0)
+        return f"*(picture left out of the homework starter: {match['alt']})*"
+
+    path.write_text(IMAGE.sub(image, path.read_text(encoding="utf-8")), encoding="utf-8")
 
 
 def describe_not_implemented(error: BaseException) -> str:
@@ -378,11 +475,217 @@ def describe_not_implemented(error: BaseException) -> str:
     return "not yet implemented: " + (text[len("TODO: "):] if text.startswith("TODO: ") else text)
 
 
+# ---------------------------------------------------------------------------------------------
+# Grading for marks: python -m demo homework grade SUBMISSION
+# ---------------------------------------------------------------------------------------------
+GRADE_TIMEOUT_S = 900
+
+
+@dataclass(frozen=True)
+class TaskGrade:
+    """The points of one task of one submission, and the first reason it lost some."""
+
+    task: str
+    earned: float
+    points: int
+    passed: int
+    total: int
+    reason: str
+
+
+def _functions(text: str) -> dict:
+    """{qualified name: (first line of `def`, last line)} of every function of a module (1-based)."""
+    found = {}
+
+    def visit(node, prefix):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                if not isinstance(child, ast.ClassDef):
+                    found[prefix + child.name] = (child.lineno, child.end_lineno)
+                visit(child, prefix + child.name + ".")
+
+    visit(ast.parse(text), "")
+    return found
+
+
+def splice(pristine: str, submitted: str, names) -> str:
+    """`pristine` with the functions `names` (qualified) replaced, `def` line to last line, by the
+    submission's; decorators stay the pristine ones. Raises ValueError naming what is missing."""
+    try:
+        theirs = _functions(submitted)
+    except SyntaxError as e:
+        raise ValueError(f"does not parse (line {e.lineno}: {e.msg})") from None
+    ours = _functions(pristine)
+    lines, their_lines = pristine.splitlines(keepends=True), submitted.splitlines(keepends=True)
+    for name in sorted(names, key=lambda n: ours[n][0], reverse=True):
+        if name not in theirs:
+            raise ValueError(f"has no function {name}")
+        first, last = ours[name]
+        their_first, their_last = theirs[name]
+        lines[first - 1:last] = their_lines[their_first - 1:their_last]
+    return "".join(lines)
+
+
+def _task_files(task: Task) -> dict:
+    """{file: [qualified function names]} of the functions a task owns."""
+    files = {}
+    for spec in task.functions:
+        path, name = spec.split(":")
+        files.setdefault(path, []).append(name)
+    return files
+
+
+def _is_starter(folder: Path) -> bool:
+    return (folder / STARTER_MARKER).is_file() and (folder / "solver").is_dir()
+
+
+def submissions(path: Path) -> dict:
+    """{name: folder} of the starters to grade: `path` itself, or the starters directly inside it."""
+    if not path.exists():
+        raise _error(f"{path} does not exist; pass a student's starter folder or a folder of them")
+    if not path.is_dir():
+        raise _error(f"{path} is not a folder; pass a student's starter folder or a folder of them")
+    if _is_starter(path):
+        return {path.resolve().name: path}
+    found = {child.name: child for child in sorted(path.iterdir()) if child.is_dir() and _is_starter(child)}
+    if not found:
+        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER} and solver/) and holds none; "
+                     "pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
+    return found
+
+
+class Grader:
+    """Grades submissions in a scratch folder: one fresh starter per task, in which that task's functions
+    come from the submission and every other task's from the solution, so a bug costs only its own task.
+
+    Nothing else of a submission is used: its conftest.py, ini files, grading/ and other files never reach
+    the tree the grader runs in, and pytest runs with a clean environment (no plugin autoload, no
+    PYTEST_ADDOPTS or PYTHONPATH) from that tree.
+    """
+
+    def __init__(self, scratch: Path, root: Path = REPO_ROOT, tasks=None):
+        self.root = root.resolve()
+        self.tasks = [TASKS_BY_ID[t] for t in tasks] if tasks else list(TASKS)
+        self.scratch = Path(scratch)
+        pristine = self.scratch / "starter"
+        generate(pristine, root=self.root, quiet=True)
+        self.pristine = {}
+        self.trees = {}
+        for n, task in enumerate(TASKS, start=1):
+            if task not in self.tasks:
+                continue
+            tree = self.scratch / f"task-{n}-{task.id}"
+            shutil.copytree(pristine, tree, symlinks=True)
+            for other in TASKS:
+                if other is not task:
+                    for file in _task_files(other):
+                        shutil.copyfile(self.root / file, tree / file)
+            self.trees[task.id] = tree
+            self.pristine[task.id] = {file: (pristine / file).read_text(encoding="utf-8") for file in _task_files(task)}
+
+    def _run(self, task: Task) -> TaskGrade:
+        tree = self.trees[task.id]
+        tests = sorted((tree / "grading").glob(f"test_*_{task.id}.py"))
+        report = self.scratch / f"score-{task.id}.json"
+        report.unlink(missing_ok=True)
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PYTEST", "VBD_", "COV_"))}
+        env.update(PYTEST_DISABLE_PLUGIN_AUTOLOAD="1", PYTHONDONTWRITEBYTECODE="1", VBD_GRADE_JSON=str(report))
+        command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir", str(tree),
+                   "-c", str(tree / "pytest.ini"), *[str(t.relative_to(tree)) for t in tests]]
+        try:
+            result = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True,
+                                    timeout=GRADE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, f"the graded tests ran past {GRADE_TIMEOUT_S} s")
+        if not report.exists():
+            last = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
+            return TaskGrade(task.id, 0.0, task.points, 0, 0,
+                             f"the graded tests did not run: {last[-1][:160] if last else 'no output'}")
+        row = json.loads(report.read_text())["tasks"].get(task.id)
+        if row is None:
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, "no graded test of this task ran")
+        return TaskGrade(task.id, float(row["earned"]), task.points, row["passed"], row["total"], row["reason"])
+
+    def grade(self, submission: Path) -> list:
+        """[TaskGrade] of one student's starter folder, in task order."""
+        grades = []
+        for task in self.tasks:
+            tree = self.trees[task.id]
+            try:
+                for file, names in _task_files(task).items():
+                    source = submission / file
+                    if not source.is_file():
+                        raise ValueError("is missing")
+                    try:
+                        text = source.read_text(encoding="utf-8")
+                    except (OSError, UnicodeDecodeError) as e:
+                        raise ValueError(f"cannot be read ({e})") from None
+                    (tree / file).write_text(splice(self.pristine[task.id][file], text, names), encoding="utf-8")
+            except ValueError as e:
+                grades.append(TaskGrade(task.id, 0.0, task.points, 0, 0, f"{file} {e}"))
+                continue
+            grades.append(self._run(task))
+        return grades
+
+
+def _points(value: float) -> str:
+    return f"{value:.0f}" if abs(value - round(value)) < 1e-9 else f"{value:.1f}"
+
+
+def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT) -> dict:
+    """Grade a starter folder or a folder of them; print each task's points and `total: NN/100` last.
+    Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file` gets the same."""
+    folders = submissions(Path(submission))
+    book = {}
+    with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
+        grader = Grader(Path(scratch), root=root, tasks=tasks)
+        for name, folder in folders.items():
+            grades = grader.grade(folder)
+            if len(folders) > 1:
+                print(f"== {name}")
+            for g in grades:
+                why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
+                print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
+            earned = sum(g.earned for g in grades)
+            total = sum(g.points for g in grades)
+            print(f"total: {_points(earned)}/{total}")
+            book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
+                          "earned": earned, "total": total}
+    if json_file is not None:
+        try:
+            Path(json_file).write_text(json.dumps(book, indent=2) + "\n", encoding="utf-8")
+        except OSError as e:
+            raise _error(f"cannot write the gradebook {json_file}: {e.strerror or e}") from None
+    return book
+
+
+def grade_main(argv) -> int:
+    from .cli import HelpFormatter, Parser
+
+    parser = Parser(
+        prog="python -m demo homework grade", formatter_class=HelpFormatter,
+        description="Grade homework for marks: copy only the task functions of each submission into a fresh "
+                    "starter built from this project (one per task, the other tasks' solutions in place) and "
+                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100.")
+    parser.add_argument("submission", type=Path, help="a student's starter folder, or a folder of them (a class)")
+    parser.add_argument("--json", type=Path, default=None, metavar="FILE",
+                        help="also write the gradebook as JSON (default: none)")
+    parser.add_argument("--task", action="append", choices=list(TASKS_BY_ID), default=None,
+                        help="grade only this task (repeatable; default: all tasks)")
+    args = parser.parse_args(argv)
+    grade(args.submission, args.json, args.task)
+    return 0
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["grade"]:
+        return grade_main(argv[1:])
     parser = argparse.ArgumentParser(
         prog="python -m demo homework", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Write a homework starter copy of this project: every solution region in the solver is "
-                    "replaced by a TODO, plus a student README and the graded tests (grading/).")
+                    "replaced by a TODO, plus a student README and the graded tests (grading/). "
+                    "`python -m demo homework grade SUBMISSION` grades students' starters for marks.")
     parser.add_argument("--out", type=Path, default=Path("out") / "homework",
                         help="folder to write the starter into")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
