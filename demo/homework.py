@@ -92,7 +92,7 @@ class Task:
 
 TASKS = (
     Task(
-        id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=30,
+        id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=25,
         chapter="lecture_notes/03-coordinate-descent.md",
         functions=("solver/physics/material.py:vertex_force_hessian",),
         what={"vertex_force_hessian": "the contribution of one tet to the force f_i and the 3x3 Hessian H_i "
@@ -104,14 +104,15 @@ TASKS = (
                                         "returns them."]},
     ),
     Task(
-        id="coloring", title="Greedy graph colouring", points=20,
+        id="coloring", title="Greedy graph colouring", points=15,
         chapter="lecture_notes/04-parallelism.md",
         functions=("solver/mesh/coloring.py:_greedy",),
         what={"_greedy": "give vertex order[k] the smallest colour that none of its already coloured "
                          "neighbours has"},
         details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
                 "colour not used by any neighbour (CSR arrays `offsets`, `neighbours`); keep `n_colors` "
-                "up to date (chapter 4, \"Greedy graph colouring\").",
+                "up to date: `_greedy` returns it, `color_vertices` refuses a mesh that needs more than 64 "
+                "colours by it, and a graded test checks it (chapter 4, \"Greedy graph colouring\").",
         notes={"_greedy": ["v = order[k] is the vertex; its neighbours are neighbours[offsets[v]:offsets[v + 1]]; "
                            "colors[u] is -1 until u is coloured.",
                            "Keep n_colors = the number of colours used so far; the function returns it."]},
@@ -130,14 +131,19 @@ TASKS = (
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
         notes={"force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
                                  "the damping term below uses it).",
-                                 "x_i is state[X, i] and y_i is state[Y, i]; the adjacency entries of colour "
-                                 "slot k are e in range(offsets[k], offsets[k + 1])."],
+                                 "Read: x_i is state[X, i] (already in x_i), y_i is state[Y, i], m_i is mass[i]; "
+                                 "h, mu and lam are already read from params above.",
+                                 "The tets around i are the adjacency entries e in range(offsets[k], "
+                                 "offsets[k + 1]): others[e] holds the tet's other three vertices and adj_f[e] "
+                                 "its stored data (adj_f[e][M_SQ] = |m|^2, adj_f[e][VOLUME] = rest volume, "
+                                 "solver/vbd/layout.py); tet_kinematics (above) turns them into the F m, J and "
+                                 "w that vertex_force_hessian (task 1) takes."],
                "newton_step": ["force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, "
                                "dtype) gives f, H; define dx (3-vector of type dtype), which the line after "
                                "the region returns."]},
     ),
     Task(
-        id="chebyshev", title="Chebyshev acceleration", points=20,
+        id="chebyshev", title="Chebyshev acceleration", points=15,
         chapter="lecture_notes/06-what-helps.md",
         functions=("solver/vbd/chebyshev.py:chebyshev_omega", "solver/vbd/chebyshev.py:chebyshev_update"),
         what={"chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
@@ -149,6 +155,24 @@ TASKS = (
                 "keeping the history rows `X_PREV` = x^(k-1) and `X_PREV2` = x^(k-2) of `state` up to date (chapter 6, "
                 "\"Chebyshev acceleration\").",
         notes={"chebyshev_update": ["Update x^(k-2) <- x^(k-1) and x^(k-1) <- the accelerated x as well."]},
+    ),
+    Task(
+        id="analysis", title="Derivations checked numerically, and measurements of your solver", points=15,
+        chapter="lecture_notes/05-information-propagation.md",
+        functions=("exercises/analysis.py:dF_dx", "exercises/analysis.py:hessian_eigenvalues",
+                   "exercises/analysis.py:iterations_needed", "exercises/analysis.py:rho_residuals",
+                   "exercises/analysis.py:best_rho"),
+        what={"dF_dx": "the constant 9x3 matrix d vec(F) / d x_i of one tet",
+              "hessian_eigenvalues": "the three eigenvalues of one tet's H_i in closed form",
+              "iterations_needed": "count the VBD iterations until max |f_i| drops by REDUCTION",
+              "rho_residuals": "max |f_i| after RHO_ITERATIONS accelerated iterations for every rho of RHO_GRID",
+              "best_rho": "the best rho of RHO_GRID by rho_residuals"},
+        depends=("force_hessian", "coloring", "vbd_sweep", "chebyshev"),
+        details="In `exercises/analysis.py`: derive and return the constant matrix dF/dx_i (why J is affine "
+                "in x_i, chapter 3) and the eigenvalues of H_i in closed form (why H_i is SPD); then measure "
+                "with your solver how many iterations a step needs as E grows (compare with N_c, chapter 5) "
+                "and which Chebyshev rho works best (chapter 6). The derivations are checked against finite "
+                "differences, the measurements against the project's own within a tolerance.",
     ),
 )
 
@@ -186,13 +210,27 @@ def cantilever(mesh, youngs_modulus, **kwargs):
 
 
 def write_references(path: Path) -> None:
-    """Solve each `REFERENCE_CASES` step to convergence with the project's Newton; save x* (N, 3) per case."""
+    """Solve each `REFERENCE_CASES` step to convergence with the project's Newton and save x* (N, 3) per
+    case; save the measurements of task 5 (`exercises/analysis.py`) made with the solution."""
     import numpy as np
 
     import solver
 
     solver.ensure_taichi("cpu")
-    np.savez(path, **{name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()})
+    arrays = {name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()}
+    np.savez(path, **arrays, **measurements())
+
+
+def measurements() -> dict:
+    """Task 5's measurements made with this copy's `exercises/analysis.py`: {"iterations_needed": (3,)
+    counts for analysis.YOUNGS_MODULI, "rho_residuals": (6,) newtons for analysis.RHO_GRID}."""
+    import numpy as np
+
+    from exercises import analysis
+
+    residuals = analysis.rho_residuals()
+    return {"iterations_needed": np.array([analysis.iterations_needed(E) for E in analysis.YOUNGS_MODULI]),
+            "rho_residuals": np.array([residuals[rho] for rho in analysis.RHO_GRID])}
 
 
 def _error(message):
@@ -563,17 +601,14 @@ class Grader:
     PYTEST_ADDOPTS or PYTHONPATH) from that tree.
     """
 
-    def __init__(self, scratch: Path, root: Path = REPO_ROOT, tasks=None):
+    def __init__(self, scratch: Path, root: Path = REPO_ROOT):
         self.root = root.resolve()
-        self.tasks = [TASKS_BY_ID[t] for t in tasks] if tasks else list(TASKS)
         self.scratch = Path(scratch)
         pristine = self.scratch / "starter"
         generate(pristine, root=self.root, quiet=True)
-        self.pristine = {}
-        self.trees = {}
+        self.pristine, self.trees = {}, {}
+        self._graded = {}        # (task, its spliced files) -> TaskGrade: the graded tests are deterministic
         for n, task in enumerate(TASKS, start=1):
-            if task not in self.tasks:
-                continue
             tree = self.scratch / f"task-{n}-{task.id}"
             shutil.copytree(pristine, tree, symlinks=True)
             for other in TASKS:
@@ -606,25 +641,35 @@ class Grader:
             return TaskGrade(task.id, 0.0, task.points, 0, 0, "no graded test of this task ran")
         return TaskGrade(task.id, float(row["earned"]), task.points, row["passed"], row["total"], row["reason"])
 
-    def grade(self, submission: Path) -> list:
-        """[TaskGrade] of one student's starter folder, in task order."""
+    def grade(self, submission: Path, tasks=None) -> list:
+        """[TaskGrade] of one student's starter folder, in task order; `tasks`: ids to grade (default all)."""
         grades = []
-        for task in self.tasks:
-            tree = self.trees[task.id]
+        for task in TASKS:
+            if tasks and task.id not in tasks:
+                continue
+            spliced = {}
             try:
                 for file, names in _task_files(task).items():
                     source = submission / file
                     if not source.is_file():
-                        raise ValueError("is missing")
+                        raise ValueError(f"{file} is missing")
                     try:
                         text = source.read_text(encoding="utf-8")
                     except (OSError, UnicodeDecodeError) as e:
-                        raise ValueError(f"cannot be read ({e})") from None
-                    (tree / file).write_text(splice(self.pristine[task.id][file], text, names), encoding="utf-8")
+                        raise ValueError(f"{file} cannot be read ({e})") from None
+                    try:
+                        spliced[file] = splice(self.pristine[task.id][file], text, names)
+                    except ValueError as e:
+                        raise ValueError(f"{file} {e}") from None
             except ValueError as e:
-                grades.append(TaskGrade(task.id, 0.0, task.points, 0, 0, f"{file} {e}"))
+                grades.append(TaskGrade(task.id, 0.0, task.points, 0, 0, str(e)))
                 continue
-            grades.append(self._run(task))
+            key = (task.id, tuple(sorted(spliced.items())))
+            if key not in self._graded:
+                for file, text in spliced.items():
+                    (self.trees[task.id] / file).write_text(text, encoding="utf-8")
+                self._graded[key] = self._run(task)
+            grades.append(self._graded[key])
         return grades
 
 
@@ -638,9 +683,9 @@ def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REP
     folders = submissions(Path(submission))
     book = {}
     with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
-        grader = Grader(Path(scratch), root=root, tasks=tasks)
+        grader = Grader(Path(scratch), root=root)
         for name, folder in folders.items():
-            grades = grader.grade(folder)
+            grades = grader.grade(folder, tasks)
             if len(folders) > 1:
                 print(f"== {name}")
             for g in grades:

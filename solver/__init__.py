@@ -22,10 +22,7 @@ from .mesh.quality import MeshQuality, det_F, inverted_count
 from .vbd.simulation import InitialGuess, IterationRecord, Simulation
 from .mesh.tetrahedralize import Mesher
 from .mesh.topology import Topology
-
-from importlib import import_module as _import_module, util as _import_util
-
-from .vbd.simulation import require_global_solvers as _require_global_solvers
+from .vbd.simulation import HAS_GLOBAL_SOLVERS as _HAS_GLOBAL_SOLVERS, require_global_solvers as _require_global_solvers
 
 _NEWTON_NAMES = {"LinearSolver": "direct", "fast_newton_solve": "direct", "NewtonResult": "oracle",
                  "StepProblem": "oracle", "newton_solve": "oracle", "Preconditioner": "pcg", "newton_pcg": "pcg"}
@@ -35,8 +32,10 @@ def __getattr__(name):
     """The newton wing's public names, imported on first use (PEP 562); ConfigError without the wing."""
     if name not in _NEWTON_NAMES:
         raise AttributeError(f"module 'solver' has no attribute {name!r}")
+    from importlib import import_module
+
     _require_global_solvers()
-    return getattr(_import_module(f".newton.{_NEWTON_NAMES[name]}", __name__), name)
+    return getattr(import_module(f".newton.{_NEWTON_NAMES[name]}", __name__), name)
 
 
 __all__ = [
@@ -46,5 +45,5 @@ __all__ = [
     "inverted_count", "is_valid_coloring", "load_mesh", "relative_energy_gap", "relative_error", "save_mesh",
     "sliver_box_mesh",
 ]
-if _import_util.find_spec(f"{__name__}.newton") is not None:
+if _HAS_GLOBAL_SOLVERS:
     __all__ += sorted(_NEWTON_NAMES)
