@@ -72,6 +72,7 @@ SKIP_PATHS = set(ANSWER_PATHS) | set(LEFT_OUT)
 # Packages only the global solvers use: not in the starter's pyproject.toml and requirements.txt.
 GLOBAL_SOLVER_PACKAGES = ("cvxopt", "qdldl", "cholespy")
 REFERENCE_FILE = "reference.npz"
+LICENCE_FILES = ("LICENSE", "CITATION.cff")      # copied into the starter with every other root file
 SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
 
 
@@ -401,6 +402,10 @@ def _student_readme(root: Path, regions) -> str:
              + "\n".join(rows) + f"\n| | | **total** | **{total}** | | |")
     left_out = "\n".join([f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items())]
                          + [f"* `{path.as_posix()}`: {why}." for path, why in sorted(LEFT_OUT.items())])
+    licence_files = [f"`{name}`" for name in LICENCE_FILES if (root / name).exists()]
+    licence = (f"The project's {' and '.join(licence_files)} apply to this copy as well." if licence_files else
+               "The project carries no licence file yet; ask your instructor before you share this copy.")
+    template = template.replace("{{LICENCE}}", licence)
     return (template.replace("{{TASK_TABLE}}", table).replace("{{TASK_SECTIONS}}", "\n".join(sections))
             .replace("{{TOTAL}}", str(total)).replace("{{LEFT_OUT}}", left_out))
 

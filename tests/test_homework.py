@@ -403,6 +403,8 @@ def test_starter_has_no_global_solver(starter, tmp_path):
         assert not any(package in text for package in homework.GLOBAL_SOLVER_PACKAGES), name
     assert '"benchmarks"' not in (starter / "pyproject.toml").read_text()
     assert (starter / "grading" / homework.REFERENCE_FILE).exists()
+    for name in (*homework.LICENCE_FILES, "assets/README.md"):        # licence and credits travel with it
+        assert (starter / name).exists() == (REPO / name).exists(), name
     for note in (starter / "lecture_notes").glob("*.md"):      # every picture the notes show is in the starter
         for target in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", note.read_text()):
             assert "://" in target or (note.parent / target).exists(), (note.name, target)
