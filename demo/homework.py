@@ -451,9 +451,12 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(strip_regions(text, found), encoding="utf-8")
             elif rel == Path("pytest.ini"):
                 target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
-            elif rel.name in ("pyproject.toml", "requirements.txt"):
-                text = (root / rel).read_text(encoding="utf-8")
-                target.write_text(_without_global_solvers(text), encoding="utf-8")
+            elif rel.name == "pyproject.toml" or (rel.name.startswith("requirements") and rel.suffix == ".txt"):
+                text = _without_global_solvers((root / rel).read_text(encoding="utf-8"))
+                if rel.suffix == ".txt" and not any(line.strip() and not line.lstrip().startswith("#")
+                                                    for line in text.splitlines()):
+                    continue          # a requirements file of the global solvers only
+                target.write_text(text, encoding="utf-8")
             else:
                 shutil.copyfile(root / rel, target)
         if not (root / "pytest.ini").exists():
