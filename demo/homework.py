@@ -210,25 +210,28 @@ def cantilever(mesh, youngs_modulus, **kwargs):
     return solver.Simulation(mesh, material, dt=1 / 60, fixed=fixed, **kwargs)
 
 
-def write_references(path: Path) -> None:
+def write_references(path: Path, root: Path = REPO_ROOT) -> None:
     """Solve each `REFERENCE_CASES` step to convergence with the project's Newton and save x* (N, 3) per
-    case; save the measurements of task 5 (`exercises/analysis.py`) made with the solution."""
+    case; save the measurements of task 5 made with `root`'s solution."""
     import numpy as np
 
     import solver
 
     solver.ensure_taichi("cpu")
     arrays = {name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()}
-    np.savez(path, **arrays, **measurements())
+    np.savez(path, **arrays, **measurements(root))
 
 
-def measurements() -> dict:
-    """Task 5's measurements made with this copy's `exercises/analysis.py`: {"iterations_needed": (3,)
+def measurements(root: Path = REPO_ROOT) -> dict:
+    """Task 5's measurements made with `root`'s `exercises/analysis.py`: {"iterations_needed": (3,)
     counts for analysis.YOUNGS_MODULI, "rho_residuals": (6,) newtons for analysis.RHO_GRID}."""
+    import importlib.util
+
     import numpy as np
 
-    from exercises import analysis
-
+    spec = importlib.util.spec_from_file_location("_solution_analysis", root / "exercises" / "analysis.py")
+    analysis = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(analysis)
     residuals = analysis.rho_residuals()
     return {"iterations_needed": np.array([analysis.iterations_needed(E) for E in analysis.YOUNGS_MODULI]),
             "rho_residuals": np.array([residuals[rho] for rho in analysis.RHO_GRID])}
@@ -464,7 +467,7 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
         grading = root / GRADING_SOURCE
         shutil.copytree(grading, out / "grading", dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache"))
-        write_references(out / "grading" / REFERENCE_FILE)
+        write_references(out / "grading" / REFERENCE_FILE, root)
         _refresh_starter_notes(out)
         if (root / "README.md").exists():
             shutil.copyfile(root / "README.md", out / "PROJECT_README.md")
@@ -540,18 +543,8 @@ class TaskGrade:
 
 
 def _functions(text: str) -> dict:
-    """{qualified name: (first line of `def`, last line)} of every function of a module (1-based)."""
-    found = {}
-
-    def visit(node, prefix):
-        for child in ast.iter_child_nodes(node):
-            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-                if not isinstance(child, ast.ClassDef):
-                    found[prefix + child.name] = (child.lineno, child.end_lineno)
-                visit(child, prefix + child.name + ".")
-
-    visit(ast.parse(text), "")
-    return found
+    """{qualified name: (line of `def`, last line)} of every function of a module (1-based)."""
+    return {name: (first, last) for first, last, name in _enclosing_functions(text)}
 
 
 def splice(pristine: str, submitted: str, names) -> str:
@@ -612,22 +605,27 @@ class Grader:
     def __init__(self, scratch: Path, root: Path = REPO_ROOT):
         self.root = root.resolve()
         self.scratch = Path(scratch)
-        pristine = self.scratch / "starter"
-        generate(pristine, root=self.root, quiet=True)
-        self.pristine, self.trees = {}, {}
+        self.starter = self.scratch / "starter"
+        generate(self.starter, root=self.root, quiet=True)
+        self.pristine = {task.id: {file: (self.starter / file).read_text(encoding="utf-8") for file in _task_files(task)}
+                         for task in TASKS}
         self._graded = {}        # (task, its spliced files) -> TaskGrade: the graded tests are deterministic
-        for n, task in enumerate(TASKS, start=1):
-            tree = self.scratch / f"task-{n}-{task.id}"
-            shutil.copytree(pristine, tree, symlinks=True)
-            for other in TASKS:
-                if other is not task:
-                    for file in _task_files(other):
-                        shutil.copyfile(self.root / file, tree / file)
-            self.trees[task.id] = tree
-            self.pristine[task.id] = {file: (pristine / file).read_text(encoding="utf-8") for file in _task_files(task)}
 
-    def _run(self, task: Task) -> TaskGrade:
-        tree = self.trees[task.id]
+    def _tree(self, task: Task, spliced: dict) -> Path:
+        """A fresh copy of the starter with `task`'s files `spliced` and every other task's solution:
+        fresh for every run, so nothing a graded submission wrote reaches the next one."""
+        tree = self.scratch / f"task-{task.id}"
+        shutil.rmtree(tree, ignore_errors=True)
+        shutil.copytree(self.starter, tree, symlinks=True)
+        for other in TASKS:
+            if other is not task:
+                for file in _task_files(other):
+                    shutil.copyfile(self.root / file, tree / file)
+        for file, text in spliced.items():
+            (tree / file).write_text(text, encoding="utf-8")
+        return tree
+
+    def _run(self, task: Task, tree: Path) -> TaskGrade:
         tests = sorted((tree / "grading").glob(f"test_*_{task.id}.py"))
         report = self.scratch / f"score-{task.id}.json"
         report.unlink(missing_ok=True)
@@ -674,9 +672,7 @@ class Grader:
                 continue
             key = (task.id, tuple(sorted(spliced.items())))
             if key not in self._graded:
-                for file, text in spliced.items():
-                    (self.trees[task.id] / file).write_text(text, encoding="utf-8")
-                self._graded[key] = self._run(task)
+                self._graded[key] = self._run(task, self._tree(task, spliced))
             grades.append(self._graded[key])
         return grades
 
