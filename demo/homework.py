@@ -12,9 +12,14 @@ Regions inside Taichi functions cannot raise at run time, so the solver calls
 ``solver.todo.require_implemented`` on those functions before it compiles them: the starter stops
 with the same message instead of a Taichi compile error.
 
-The starter also gets a student README (the task list, points and how to grade) and the graded
-tests from ``homework/grading/`` as ``grading/``; ``pytest`` in the starter runs them and prints the
-score per task.
+The starter also gets a student README (the task list, points and how to grade), the graded tests
+from ``homework/grading/`` as ``grading/`` and ``grading/reference.npz``, the converged steps the
+graded tests compare against (`REFERENCE_CASES`, solved by the project's global Newton when the starter
+is written: the starter ships no global solver). ``pytest`` in the starter runs the graded tests and
+prints the score per task.
+
+``python -m demo homework grade SUBMISSION`` grades a student's starter (or a folder of them) for
+marks: see `grade`.
 
 This module imports nothing heavy: the graded tests read ``TASKS`` from it.
 """
@@ -23,8 +28,11 @@ import ast
 import io
 import json
 import re
+import os
 import shutil
+import subprocess
 import sys
+import tempfile
 import textwrap
 import tokenize
 from dataclasses import dataclass, field
@@ -49,7 +57,22 @@ ANSWER_PATHS = {
                         "(`benchmarks/baselines.py`: the VBD sweep in numpy and a Jacobi sweep) are tasks 1 and 3 "
                         "written out",
 }
-SKIP_PATHS = set(ANSWER_PATHS)
+ANSWER_PATHS[Path("solver") / "newton"] = (
+    "the global solvers (Newton, Newton-PCG, two-level VBD, the sparse Cholesky) assemble every vertex's "
+    "f_i and H_i, tasks 1 and 3 in another form; the graded tests compare against converged steps stored in "
+    "`grading/reference.npz` instead, and `method=` other than `'vbd'` and `newton_reference()` stop with "
+    "one line")
+# Left out because they cannot work without the finished solver and the global solvers; no answer in them.
+LEFT_OUT = {
+    Path("demo") / "figures.py": "the project's `figures` command, which redraws the lecture figures and checks "
+                                 "the notes' numbers, needs the finished solver and the global solvers; the "
+                                 "figures it drew are in `lecture_notes/figures/`",
+}
+SKIP_PATHS = set(ANSWER_PATHS) | set(LEFT_OUT)
+# Packages only the global solvers use: not in the starter's pyproject.toml and requirements.txt.
+GLOBAL_SOLVER_PACKAGES = ("cvxopt", "qdldl", "cholespy")
+REFERENCE_FILE = "reference.npz"
+LICENCE_FILES = ("LICENSE", "CITATION.cff")      # copied into the starter with every other root file
 SKIP_SUFFIXES = {".pyc", ".pyo", ".mp4", ".gif"}
 
 
@@ -70,7 +93,7 @@ class Task:
 
 TASKS = (
     Task(
-        id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=30,
+        id="force_hessian", title="Per-vertex force and Hessian of the stable Neo-Hookean energy", points=25,
         chapter="lecture_notes/03-coordinate-descent.md",
         functions=("solver/physics/material.py:vertex_force_hessian",),
         what={"vertex_force_hessian": "the contribution of one tet to the force f_i and the 3x3 Hessian H_i "
@@ -82,14 +105,15 @@ TASKS = (
                                         "returns them."]},
     ),
     Task(
-        id="coloring", title="Greedy graph colouring", points=20,
+        id="coloring", title="Greedy graph colouring", points=15,
         chapter="lecture_notes/04-parallelism.md",
         functions=("solver/mesh/coloring.py:_greedy",),
         what={"_greedy": "give vertex order[k] the smallest colour that none of its already coloured "
                          "neighbours has"},
         details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
                 "colour not used by any neighbour (CSR arrays `offsets`, `neighbours`); keep `n_colors` "
-                "up to date (chapter 4, \"Greedy graph colouring\").",
+                "up to date: `_greedy` returns it, `color_vertices` refuses a mesh that needs more than 64 "
+                "colours by it, and a graded test checks it (chapter 4, \"Greedy graph colouring\").",
         notes={"_greedy": ["v = order[k] is the vertex; its neighbours are neighbours[offsets[v]:offsets[v + 1]]; "
                            "colors[u] is -1 until u is coloured.",
                            "Keep n_colors = the number of colours used so far; the function returns it."]},
@@ -108,14 +132,19 @@ TASKS = (
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
         notes={"force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "
                                  "the damping term below uses it).",
-                                 "x_i is state[X, i] and y_i is state[Y, i]; the adjacency entries of colour "
-                                 "slot k are e in range(offsets[k], offsets[k + 1])."],
+                                 "Read: x_i is state[X, i] (already in x_i), y_i is state[Y, i], m_i is mass[i]; "
+                                 "h, mu and lam are already read from params above.",
+                                 "The tets around i are the adjacency entries e in range(offsets[k], "
+                                 "offsets[k + 1]): others[e] holds the tet's other three vertices and adj_f[e] "
+                                 "its stored data (adj_f[e][M_SQ] = |m|^2, adj_f[e][VOLUME] = rest volume, "
+                                 "solver/vbd/layout.py); tet_kinematics (above) turns them into the F m, J and "
+                                 "w that vertex_force_hessian (task 1) takes."],
                "newton_step": ["force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, "
                                "dtype) gives f, H; define dx (3-vector of type dtype), which the line after "
                                "the region returns."]},
     ),
     Task(
-        id="chebyshev", title="Chebyshev acceleration", points=20,
+        id="chebyshev", title="Chebyshev acceleration", points=15,
         chapter="lecture_notes/06-what-helps.md",
         functions=("solver/vbd/chebyshev.py:chebyshev_omega", "solver/vbd/chebyshev.py:chebyshev_update"),
         what={"chebyshev_omega": "the Chebyshev weight omega_k of iteration k (VBD Eq. 19)",
@@ -128,9 +157,84 @@ TASKS = (
                 "\"Chebyshev acceleration\").",
         notes={"chebyshev_update": ["Update x^(k-2) <- x^(k-1) and x^(k-1) <- the accelerated x as well."]},
     ),
+    Task(
+        id="analysis", title="Derivations checked numerically, and measurements of your solver", points=15,
+        chapter="lecture_notes/05-information-propagation.md",
+        functions=("exercises/analysis.py:dF_dx", "exercises/analysis.py:hessian_eigenvalues",
+                   "exercises/analysis.py:iterations_needed", "exercises/analysis.py:rho_residuals",
+                   "exercises/analysis.py:best_rho"),
+        what={"dF_dx": "the constant 9x3 matrix d vec(F) / d x_i of one tet",
+              "hessian_eigenvalues": "the three eigenvalues of one tet's H_i in closed form",
+              "iterations_needed": "count the VBD iterations until max |f_i| drops by REDUCTION",
+              "rho_residuals": "max |f_i| after RHO_ITERATIONS accelerated iterations for every rho of RHO_GRID",
+              "best_rho": "the best rho of RHO_GRID by rho_residuals"},
+        depends=("force_hessian", "coloring", "vbd_sweep", "chebyshev"),
+        details="In `exercises/analysis.py`: derive and return the constant matrix dF/dx_i (why J is affine "
+                "in x_i, chapter 3) and the eigenvalues of H_i in closed form (why H_i is SPD); then measure "
+                "with your solver how many iterations a step needs as E grows (compare with N_c, chapter 5) "
+                "and which Chebyshev rho works best (chapter 6). The derivations are checked against finite "
+                "differences, the measurements against the project's own within a tolerance.",
+    ),
 )
 
 TASKS_BY_ID = {task.id: task for task in TASKS}
+
+
+@dataclass(frozen=True)
+class ReferenceCase:
+    """A cantilever bar whose first converged implicit Euler step the graded tests compare against."""
+
+    cells: tuple                 # (nx, ny, nz) cubes of 6 tets
+    size: tuple                  # (lx, ly, lz) in metres
+    youngs_modulus: float        # Pa
+
+    def simulation(self, **kwargs):
+        import solver
+
+        return cantilever(solver.box_mesh(size=self.size, cells=self.cells), self.youngs_modulus, **kwargs)
+
+
+REFERENCE_CASES = {
+    "soft_bar": ReferenceCase(cells=(8, 2, 2), size=(0.4, 0.1, 0.1), youngs_modulus=1e4),
+    "stiff_long_bar": ReferenceCase(cells=(16, 2, 2), size=(0.8, 0.1, 0.1), youngs_modulus=1e6),
+}
+
+
+def cantilever(mesh, youngs_modulus, **kwargs):
+    """A `Simulation` of `mesh` pinned at x = min: nu = 0.3, rho = 1000 kg/m^3, h = 1/60 s, inertial guess."""
+    import solver
+
+    material = solver.Material(youngs_modulus=youngs_modulus, poisson_ratio=0.3, density=1000.0)
+    fixed = mesh.vertices[:, 0] < mesh.vertices[:, 0].min() + 1e-9
+    kwargs.setdefault("initial_guess", solver.InitialGuess.INERTIAL)
+    return solver.Simulation(mesh, material, dt=1 / 60, fixed=fixed, **kwargs)
+
+
+def write_references(path: Path, root: Path = REPO_ROOT) -> None:
+    """Solve each `REFERENCE_CASES` step to convergence with the project's Newton and save x* (N, 3) per
+    case; save the measurements of task 5 made with `root`'s solution."""
+    import numpy as np
+
+    import solver
+
+    solver.ensure_taichi("cpu")
+    arrays = {name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()}
+    np.savez(path, **arrays, **measurements(root))
+
+
+def measurements(root: Path = REPO_ROOT) -> dict:
+    """Task 5's measurements made with `root`'s `exercises/analysis.py`: {"iterations_needed": (3,)
+    counts for analysis.YOUNGS_MODULI, "rho_residuals": (6,) newtons for analysis.RHO_GRID}."""
+    import importlib.util
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("_solution_analysis", root / "exercises" / "analysis.py")
+    analysis = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(analysis)
+    residuals = analysis.rho_residuals()
+    return {"iterations_needed": np.array([analysis.iterations_needed(E) for E in analysis.YOUNGS_MODULI]),
+            "rho_residuals": np.array([residuals[rho] for rho in analysis.RHO_GRID])}
 
 
 def _error(message):
@@ -299,7 +403,12 @@ def _student_readme(root: Path, regions) -> str:
     template = (root / README_TEMPLATE).read_text(encoding="utf-8")
     table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"
              + "\n".join(rows) + f"\n| | | **total** | **{total}** | | |")
-    left_out = "\n".join(f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items()))
+    left_out = "\n".join([f"* `{path.as_posix()}/`: {why}." for path, why in sorted(ANSWER_PATHS.items())]
+                         + [f"* `{path.as_posix()}`: {why}." for path, why in sorted(LEFT_OUT.items())])
+    licence_files = [f"`{name}`" for name in LICENCE_FILES if (root / name).exists()]
+    licence = (f"The project's {' and '.join(licence_files)} apply to this copy as well." if licence_files else
+               "The project carries no licence file yet; ask your instructor before you share this copy.")
+    template = template.replace("{{LICENCE}}", licence)
     return (template.replace("{{TASK_TABLE}}", table).replace("{{TASK_SECTIONS}}", "\n".join(sections))
             .replace("{{TOTAL}}", str(total)).replace("{{LEFT_OUT}}", left_out))
 
@@ -309,6 +418,13 @@ def _pytest_ini(text: str) -> str:
     if re.search(r"^testpaths\s*=.*$", text, flags=re.M):
         return re.sub(r"^testpaths\s*=.*$", "testpaths = grading", text, flags=re.M)
     return text.rstrip("\n") + "\ntestpaths = grading\n"
+
+
+def _without_global_solvers(text: str) -> str:
+    """A requirements or pyproject text without the lines naming the global solvers or their packages."""
+    dropped = (*GLOBAL_SOLVER_PACKAGES, "solver/newton", "solver.newton")
+    kept = [line for line in text.splitlines(keepends=True) if not any(word in line for word in dropped)]
+    return "".join(kept).replace(', "benchmarks"]', "]")
 
 
 def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: bool = False):
@@ -338,6 +454,12 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(strip_regions(text, found), encoding="utf-8")
             elif rel == Path("pytest.ini"):
                 target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
+            elif rel.name == "pyproject.toml" or (rel.name.startswith("requirements") and rel.suffix == ".txt"):
+                text = _without_global_solvers((root / rel).read_text(encoding="utf-8"))
+                if rel.suffix == ".txt" and not any(line.strip() and not line.lstrip().startswith("#")
+                                                    for line in text.splitlines()):
+                    continue          # a requirements file of the global solvers only
+                target.write_text(text, encoding="utf-8")
             else:
                 shutil.copyfile(root / rel, target)
         if not (root / "pytest.ini").exists():
@@ -345,9 +467,11 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
         grading = root / GRADING_SOURCE
         shutil.copytree(grading, out / "grading", dirs_exist_ok=True,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache"))
+        write_references(out / "grading" / REFERENCE_FILE, root)
         _refresh_starter_notes(out)
         if (root / "README.md").exists():
             shutil.copyfile(root / "README.md", out / "PROJECT_README.md")
+            _drop_missing_pictures(out / "PROJECT_README.md")
         (out / "README.md").write_text(_student_readme(root, regions), encoding="utf-8")
         (out / STARTER_MARKER).write_text(json.dumps(
             {"tasks": [t.id for t in TASKS],
@@ -362,14 +486,36 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
     return regions
 
 
+IMAGE = re.compile(r"!\[(?P<alt>[^\]]*)\]\((?P<target>[^)\s]+)\)")
+
+
 def _refresh_starter_notes(out: Path):
     """Re-quote the code excerpts of the starter's lecture notes from the starter's own sources, so
-    that the notes show the TODOs and no solution code."""
-    from .notes_sync import chapters, refresh_excerpts
+    that the notes show the TODOs and no solution code; an excerpt of a file or a picture the starter
+    leaves out becomes a line saying so."""
+    from .notes_sync import EXCERPT, chapters, function_source
 
-    for path in chapters(out / "lecture_notes"):
+    def excerpt(match):
+        if not (out / match["path"]).exists():
+            return f"*(`{match['path']}` is not in the homework starter; see its README)*"
+        return match.group(1) + function_source(out / match["path"], match["name"]) + match.group(5)
+
+    for path in sorted((out / "lecture_notes").glob("*.md")):
         text = path.read_text(encoding="utf-8")
-        path.write_text(refresh_excerpts(text, root=out), encoding="utf-8")
+        if path in chapters(out / "lecture_notes"):
+            text = EXCERPT.sub(excerpt, text)
+        path.write_text(text, encoding="utf-8")
+        _drop_missing_pictures(path)
+
+
+def _drop_missing_pictures(path: Path):
+    """Replace each picture link of the Markdown file `path` whose file is absent by a line saying so."""
+    def image(match):
+        if "://" in match["target"] or (path.parent / match["target"]).exists():
+            return match.group(0)
+        return f"*(picture left out of the homework starter: {match['alt']})*"
+
+    path.write_text(IMAGE.sub(image, path.read_text(encoding="utf-8")), encoding="utf-8")
 
 
 def describe_not_implemented(error: BaseException) -> str:
@@ -378,11 +524,217 @@ def describe_not_implemented(error: BaseException) -> str:
     return "not yet implemented: " + (text[len("TODO: "):] if text.startswith("TODO: ") else text)
 
 
+# ---------------------------------------------------------------------------------------------
+# Grading for marks: python -m demo homework grade SUBMISSION
+# ---------------------------------------------------------------------------------------------
+GRADE_TIMEOUT_S = 900
+
+
+@dataclass(frozen=True)
+class TaskGrade:
+    """The points of one task of one submission, and the first reason it lost some."""
+
+    task: str
+    earned: float
+    points: int
+    passed: int
+    total: int
+    reason: str
+
+
+def _functions(text: str) -> dict:
+    """{qualified name: (line of `def`, last line)} of every function of a module (1-based)."""
+    return {name: (first, last) for first, last, name in _enclosing_functions(text)}
+
+
+def splice(pristine: str, submitted: str, names) -> str:
+    """`pristine` with the functions `names` (qualified) replaced, `def` line to last line, by the
+    submission's; decorators stay the pristine ones. Raises ValueError naming what is missing."""
+    try:
+        theirs = _functions(submitted)
+    except SyntaxError as e:
+        raise ValueError(f"does not parse (line {e.lineno}: {e.msg})") from None
+    ours = _functions(pristine)
+    lines, their_lines = pristine.splitlines(keepends=True), submitted.splitlines(keepends=True)
+    for name in sorted(names, key=lambda n: ours[n][0], reverse=True):
+        if name not in theirs:
+            raise ValueError(f"has no function {name}")
+        first, last = ours[name]
+        their_first, their_last = theirs[name]
+        lines[first - 1:last] = their_lines[their_first - 1:their_last]
+    return "".join(lines)
+
+
+def _task_files(task: Task) -> dict:
+    """{file: [qualified function names]} of the functions a task owns."""
+    files = {}
+    for spec in task.functions:
+        path, name = spec.split(":")
+        files.setdefault(path, []).append(name)
+    return files
+
+
+def _is_starter(folder: Path) -> bool:
+    return (folder / STARTER_MARKER).is_file() and (folder / "solver").is_dir()
+
+
+def submissions(path: Path) -> dict:
+    """{name: folder} of the starters to grade: `path` itself, or the starters directly inside it."""
+    if not path.exists():
+        raise _error(f"{path} does not exist; pass a student's starter folder or a folder of them")
+    if not path.is_dir():
+        raise _error(f"{path} is not a folder; pass a student's starter folder or a folder of them")
+    if _is_starter(path):
+        return {path.resolve().name: path}
+    found = {child.name: child for child in sorted(path.iterdir()) if child.is_dir() and _is_starter(child)}
+    if not found:
+        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER} and solver/) and holds none; "
+                     "pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
+    return found
+
+
+class Grader:
+    """Grades submissions in a scratch folder: one fresh starter per task, in which that task's functions
+    come from the submission and every other task's from the solution, so a bug costs only its own task.
+
+    Nothing else of a submission is used: its conftest.py, ini files, grading/ and other files never reach
+    the tree the grader runs in, and pytest runs with a clean environment (no plugin autoload, no
+    PYTEST_ADDOPTS or PYTHONPATH) from that tree.
+    """
+
+    def __init__(self, scratch: Path, root: Path = REPO_ROOT):
+        self.root = root.resolve()
+        self.scratch = Path(scratch)
+        self.starter = self.scratch / "starter"
+        generate(self.starter, root=self.root, quiet=True)
+        self.pristine = {task.id: {file: (self.starter / file).read_text(encoding="utf-8") for file in _task_files(task)}
+                         for task in TASKS}
+        self._graded = {}        # (task, its spliced files) -> TaskGrade: the graded tests are deterministic
+
+    def _tree(self, task: Task, spliced: dict) -> Path:
+        """A fresh copy of the starter with `task`'s files `spliced` and every other task's solution:
+        fresh for every run, so nothing a graded submission wrote reaches the next one."""
+        tree = self.scratch / f"task-{task.id}"
+        shutil.rmtree(tree, ignore_errors=True)
+        shutil.copytree(self.starter, tree, symlinks=True)
+        for other in TASKS:
+            if other is not task:
+                for file in _task_files(other):
+                    shutil.copyfile(self.root / file, tree / file)
+        for file, text in spliced.items():
+            (tree / file).write_text(text, encoding="utf-8")
+        return tree
+
+    def _run(self, task: Task, tree: Path) -> TaskGrade:
+        tests = sorted((tree / "grading").glob(f"test_*_{task.id}.py"))
+        report = self.scratch / f"score-{task.id}.json"
+        report.unlink(missing_ok=True)
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PYTEST", "VBD_", "COV_"))}
+        env.update(PYTEST_DISABLE_PLUGIN_AUTOLOAD="1", PYTHONDONTWRITEBYTECODE="1", VBD_GRADE_JSON=str(report))
+        command = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--rootdir", str(tree),
+                   "-c", str(tree / "pytest.ini"), *[str(t.relative_to(tree)) for t in tests]]
+        try:
+            result = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True,
+                                    timeout=GRADE_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, f"the graded tests ran past {GRADE_TIMEOUT_S} s")
+        if not report.exists():
+            last = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
+            return TaskGrade(task.id, 0.0, task.points, 0, 0,
+                             f"the graded tests did not run: {last[-1][:160] if last else 'no output'}")
+        row = json.loads(report.read_text())["tasks"].get(task.id)
+        if row is None:
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, "no graded test of this task ran")
+        return TaskGrade(task.id, float(row["earned"]), task.points, row["passed"], row["total"], row["reason"])
+
+    def grade(self, submission: Path, tasks=None) -> list:
+        """[TaskGrade] of one student's starter folder, in task order; `tasks`: ids to grade (default all)."""
+        grades = []
+        for task in TASKS:
+            if tasks and task.id not in tasks:
+                continue
+            spliced = {}
+            try:
+                for file, names in _task_files(task).items():
+                    source = submission / file
+                    if not source.is_file():
+                        raise ValueError(f"{file} is missing")
+                    try:
+                        text = source.read_text(encoding="utf-8")
+                    except (OSError, UnicodeDecodeError) as e:
+                        raise ValueError(f"{file} cannot be read ({e})") from None
+                    try:
+                        spliced[file] = splice(self.pristine[task.id][file], text, names)
+                    except ValueError as e:
+                        raise ValueError(f"{file} {e}") from None
+            except ValueError as e:
+                grades.append(TaskGrade(task.id, 0.0, task.points, 0, 0, str(e)))
+                continue
+            key = (task.id, tuple(sorted(spliced.items())))
+            if key not in self._graded:
+                self._graded[key] = self._run(task, self._tree(task, spliced))
+            grades.append(self._graded[key])
+        return grades
+
+
+def _points(value: float) -> str:
+    return f"{value:.0f}" if abs(value - round(value)) < 1e-9 else f"{value:.1f}"
+
+
+def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT) -> dict:
+    """Grade a starter folder or a folder of them; print each task's points and `total: NN/100` last.
+    Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file` gets the same."""
+    folders = submissions(Path(submission))
+    book = {}
+    with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
+        grader = Grader(Path(scratch), root=root)
+        for name, folder in folders.items():
+            grades = grader.grade(folder, tasks)
+            if len(folders) > 1:
+                print(f"== {name}")
+            for g in grades:
+                why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
+                print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
+            earned = sum(g.earned for g in grades)
+            total = sum(g.points for g in grades)
+            print(f"total: {_points(earned)}/{total}")
+            book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
+                          "earned": earned, "total": total}
+    if json_file is not None:
+        try:
+            Path(json_file).write_text(json.dumps(book, indent=2) + "\n", encoding="utf-8")
+        except OSError as e:
+            raise _error(f"cannot write the gradebook {json_file}: {e.strerror or e}") from None
+    return book
+
+
+def grade_main(argv) -> int:
+    from .cli import HelpFormatter, Parser
+
+    parser = Parser(
+        prog="python -m demo homework grade", formatter_class=HelpFormatter,
+        description="Grade homework for marks: copy only the task functions of each submission into a fresh "
+                    "starter built from this project (one per task, the other tasks' solutions in place) and "
+                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100.")
+    parser.add_argument("submission", type=Path, help="a student's starter folder, or a folder of them (a class)")
+    parser.add_argument("--json", type=Path, default=None, metavar="FILE",
+                        help="also write the gradebook as JSON (default: none)")
+    parser.add_argument("--task", action="append", choices=list(TASKS_BY_ID), default=None,
+                        help="grade only this task (repeatable; default: all tasks)")
+    args = parser.parse_args(argv)
+    grade(args.submission, args.json, args.task)
+    return 0
+
+
 def main(argv=None):
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["grade"]:
+        return grade_main(argv[1:])
     parser = argparse.ArgumentParser(
         prog="python -m demo homework", formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Write a homework starter copy of this project: every solution region in the solver is "
-                    "replaced by a TODO, plus a student README and the graded tests (grading/).")
+                    "replaced by a TODO, plus a student README and the graded tests (grading/). "
+                    "`python -m demo homework grade SUBMISSION` grades students' starters for marks.")
     parser.add_argument("--out", type=Path, default=Path("out") / "homework",
                         help="folder to write the starter into")
     parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")

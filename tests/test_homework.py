@@ -2,6 +2,7 @@
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -386,3 +387,162 @@ def test_starter_notes_quote_the_starter_code(starter):
         if path.suffix in (".py", ".md") and path.is_file():
             lines = {line.strip() for line in path.read_text().splitlines()}
             assert not (lines & distinctive), (path, lines & distinctive)
+
+
+# ---------------------------------------------------------------------------------------------
+# Grading for marks: python -m demo homework grade SUBMISSION
+# ---------------------------------------------------------------------------------------------
+TASK_FILES = ("solver/physics/material.py", "solver/mesh/coloring.py", "solver/vbd/vertex_solve.py",
+              "solver/vbd/chebyshev.py", "exercises/analysis.py")
+
+
+def test_starter_has_no_global_solver(starter, tmp_path):
+    assert not (starter / "solver" / "newton").exists()
+    for path in [starter / "pyproject.toml", *starter.glob("requirements*.txt")]:
+        text = path.read_text()
+        assert not any(package in text for package in homework.GLOBAL_SOLVER_PACKAGES), path.name
+    assert (starter / "requirements.txt").exists()
+    assert '"benchmarks"' not in (starter / "pyproject.toml").read_text()
+    assert (starter / "grading" / homework.REFERENCE_FILE).exists()
+    for name in (*homework.LICENCE_FILES, "assets/README.md"):        # licence and credits travel with it
+        assert (starter / name).exists() == (REPO / name).exists(), name
+    for note in (starter / "lecture_notes").glob("*.md"):      # every picture the notes show is in the starter
+        for target in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", note.read_text()):
+            assert "://" in target or (note.parent / target).exists(), (note.name, target)
+    code = ("import solver\n"
+            "from solver import *\n"
+            "sim = solver.Simulation(solver.box_mesh(cells=(1, 1, 1)), solver.Material(1e4, 0.3))\n"
+            "for call in (lambda: sim.newton_reference(), lambda: solver.newton_solve,\n"
+            "             lambda: solver.Simulation(sim.mesh, solver.Material(1e4, 0.3), method='newton')):\n"
+            "    try:\n        call()\n    except solver.ConfigError as e:\n        print('refused:', e)\n")
+    result = run(["-c", code], as_solution(starter, tmp_path / "solution"))
+    refused = [line for line in result.stdout.splitlines() if line.startswith("refused: ")]
+    assert len(refused) == 3 and all("this copy has no global solvers" in line for line in refused), result.stderr
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda tmp: tmp / "absent", "does not exist"),
+    (lambda tmp: (tmp / "file.txt").write_text("x") and tmp / "file.txt", "is not a folder"),
+    (lambda tmp: (tmp / "empty").mkdir() or tmp / "empty", "is not a homework starter"),
+])
+def test_grade_refuses_what_is_not_a_submission(tmp_path, capsys, make, match):
+    assert main(["homework", "grade", str(make(tmp_path))]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err, err
+
+
+def test_splice_takes_only_the_named_functions():
+    pristine = "import a\n\n\n@deco\ndef f(x):\n    raise NotImplementedError\n\n\ndef g():\n    return 1\n"
+    submitted = "import evil\n\n\n@other\ndef f(x):\n    y = x\n    return y\n\n\ndef g():\n    return 2\n"
+    assert homework.splice(pristine, submitted, ["f"]) == (
+        "import a\n\n\n@deco\ndef f(x):\n    y = x\n    return y\n\n\ndef g():\n    return 1\n")
+    with pytest.raises(ValueError, match="has no function f"):
+        homework.splice(pristine, "def h():\n    pass\n", ["f"])
+    with pytest.raises(ValueError, match="does not parse"):
+        homework.splice(pristine, "def f(:\n", ["f"])
+
+
+def as_solution(starter: Path, folder: Path) -> Path:
+    """A copy of the starter with the project's own task files dropped in: the solution, as a submission."""
+    shutil.copytree(starter, folder)
+    for file in TASK_FILES:
+        shutil.copyfile(REPO / file, folder / file)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def grader(tmp_path_factory):
+    return homework.Grader(tmp_path_factory.mktemp("grader"))
+
+
+def earned(grades):
+    return {g.task: g.earned for g in grades}
+
+
+@pytest.mark.slow
+def test_the_solution_scores_100_and_the_untouched_starter_0(grader, starter, tmp_path):
+    full = earned(grader.grade(as_solution(starter, tmp_path / "solution")))
+    assert full == {t.id: t.points for t in homework.TASKS}, full
+    zero = grader.grade(starter)
+    assert earned(zero) == {t.id: 0 for t in homework.TASKS}
+    assert all(g.reason.startswith(f"TODO: {g.task}: ") for g in zero), zero
+
+
+# (task, file, solution text, planted bug, words the first failure must contain)
+BUGS = [
+    ("force_hessian", "solver/physics/material.py", "f = -vol * (mu * Fm", "f = -(mu * Fm", "f_i"),
+    ("force_hessian", "solver/physics/material.py", "lam * w.outer_product(w)", "w.outer_product(w)", "H_i"),
+    ("coloring", "solver/mesh/coloring.py", "used |= ti.u64(1) << ti.u64(c)", "used |= ti.u64(0)", "share a colour"),
+    ("vbd_sweep", "solver/vbd/vertex_solve.py", "f = m_h2 * (state[Y, i] - x_i)", "f = ti.Vector.zero(dtype, 3)",
+     "inertia term of f_i"),
+    ("vbd_sweep", "solver/vbd/vertex_solve.py", "H = ti.Matrix.diag(3, m_h2)", "H = ti.Matrix.zero(dtype, 3, 3)",
+     "inertia term of H_i"),
+    ("vbd_sweep", "solver/vbd/vertex_solve.py", "    f += f_el\n", "    f += 0.5 * f_el\n", "elasticity term of f_i"),
+    ("vbd_sweep", "solver/vbd/vertex_solve.py", "    H += H_el\n", "    H += 0.5 * H_el\n", "elasticity term of H_i"),
+    ("vbd_sweep", "solver/vbd/vertex_solve.py", "dx = ti.cast(H.inverse() @ f, dtype)",
+     "dx = ti.cast(0.5 * H.inverse() @ f, dtype)", "solved last"),
+    ("chebyshev", "solver/vbd/chebyshev.py", "return 2.0 / (2.0 - rho * rho)", "return 2.0 / (2.0 - rho)", "assert"),
+    ("chebyshev", "solver/vbd/chebyshev.py", "state[X_PREV2, i] = state[X_PREV, i]", "state[X_PREV2, i] = x_accel",
+     "assert"),
+    ("analysis", "exercises/analysis.py", "np.kron(np.eye(3), np.reshape(np.asarray(m, dtype=float), (3, 1)))",
+     "np.kron(np.reshape(np.asarray(m, dtype=float), (3, 1)), np.eye(3))", "dF_dx(m) is not"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("task, file, right, wrong, words", BUGS, ids=[f"{b[0]}-{n}" for n, b in enumerate(BUGS)])
+def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path, task, file, right, wrong, words):
+    """Each bug (one per task, and one per term of f_i and H_i) loses points in its own task only, and the
+    first failure names what is wrong. The other tasks are graded with the reference solution in place;
+    their trees are the solution's, so the grader answers them from the solution's run."""
+    submission = as_solution(starter, tmp_path / "bugged")
+    text = (submission / file).read_text()
+    assert text.count(right) == 1, f"the solution no longer contains {right!r}: update BUGS"
+    (submission / file).write_text(text.replace(right, wrong))
+    grades = {g.task: g for g in grader.grade(submission)}
+    for other in homework.TASKS:
+        if other.id != task:
+            assert grades[other.id].earned == other.points, (other.id, grades[other.id])
+    assert grades[task].earned < grades[task].points and words in grades[task].reason, grades[task]
+    assert "\n" not in grades[task].reason and len(grades[task].reason) <= 160
+
+
+def game(starter: Path, folder: Path) -> Path:
+    """The starter with every task still a TODO, gamed: a root conftest.py that turns every test into a
+    no-op, a gutted grading/ (gradelib's require a no-op, a task's tests replaced), an edited pytest.ini and
+    a task file whose other functions lie (the energy the tests check against is zero)."""
+    shutil.copytree(starter, folder)
+    (folder / "conftest.py").write_text(
+        "def pytest_collection_modifyitems(items):\n"
+        "    for item in items:\n"
+        "        item.runtest = lambda: None\n")
+    (folder / "grading" / "gradelib.py").write_text(
+        (folder / "grading" / "gradelib.py").read_text() + "\n\ndef require(task_id):\n    return None\n")
+    (folder / "grading" / "test_2_coloring.py").write_text(
+        "import pytest\n\npytestmark = pytest.mark.task('coloring')\n\n\ndef test_ok():\n    pass\n")
+    (folder / "pytest.ini").write_text((folder / "pytest.ini").read_text() + "addopts = -p no:warnings\n")
+    material = folder / "solver" / "physics" / "material.py"
+    material.write_text(material.read_text() + "\n\ndef psi_np(F, mu, lam):\n    return 0 * F[..., 0, 0]\n")
+    return folder
+
+
+@pytest.mark.slow
+def test_a_gamed_starter_scores_0_and_a_class_gets_a_gradebook(starter, tmp_path):
+    """The gaming works on the student's own run (100/100 with every task a TODO) and gets nothing from
+    the grader; a folder of submissions is graded as a class, the gradebook written as JSON."""
+    klass = tmp_path / "class"
+    klass.mkdir()
+    gamed = game(starter, klass / "gamed")
+    shutil.copytree(starter, klass / "untouched")
+    score = tmp_path / "own.json"
+    run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], gamed, VBD_GRADE_JSON=str(score))
+    assert json.loads(score.read_text())["earned"] == 100      # the student's own run is fooled
+    book = tmp_path / "book.json"
+    result = run(["-m", "demo", "homework", "grade", str(klass), "--json", str(book)], REPO)
+    assert result.returncode == 0, result.stderr[-2000:]
+    lines = result.stdout.strip().splitlines()
+    assert lines[-1] == "total: 0/100" and "== gamed" in lines and "== untouched" in lines, result.stdout
+    assert lines.count("total: 0/100") == 2
+    gradebook = json.loads(book.read_text())
+    assert set(gradebook) == {"gamed", "untouched"}
+    assert all(entry["earned"] == 0 and entry["total"] == 100 for entry in gradebook.values()), gradebook

@@ -60,11 +60,19 @@ def pytest_runtest_makereport(item, call):
         return
     if report.skipped or not (report.when == "call" or (report.when == "setup" and report.failed)):
         return
-    reason = ""
-    if report.failed:
-        todo = [line for line in str(report.longrepr).splitlines() if "NotImplementedError: TODO:" in line]
-        reason = todo[0].split("NotImplementedError: ", 1)[1] if todo else "failed"
+    reason = _failure_line(report) if report.failed else ""
     _results[item.nodeid] = (marker.args[0], report.passed, reason)
+
+
+def _failure_line(report) -> str:
+    """One line saying why a graded test failed: the TODO message, else the first line of the error."""
+    todo = [line for line in str(report.longrepr).splitlines() if "NotImplementedError: TODO:" in line]
+    if todo:
+        return todo[0].split("NotImplementedError: ", 1)[1]
+    crash = getattr(report.longrepr, "reprcrash", None)
+    line = crash.message.splitlines()[0] if crash is not None and crash.message else "failed"
+    line = line.removeprefix("AssertionError: ")
+    return line if len(line) <= 160 else line[:157] + "..."
 
 
 def scores():
@@ -75,9 +83,11 @@ def scores():
         if not runs:
             continue
         passed = sum(1 for ok, _ in runs if ok)
-        reasons = [r for ok, r in runs if not ok and r.startswith("TODO:")]
+        reasons = [r for ok, r in runs if not ok]
+        todo = [r for r in reasons if r.startswith("TODO:")]
         table[task.id] = {"points": task.points, "earned": round(task.points * passed / len(runs), 2),
-                          "passed": passed, "total": len(runs), "todo": reasons[0] if reasons else ""}
+                          "passed": passed, "total": len(runs), "todo": todo[0] if todo else "",
+                          "reason": reasons[0] if reasons else ""}
     return table
 
 

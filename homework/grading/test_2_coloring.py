@@ -48,6 +48,18 @@ def test_every_vertex_gets_the_first_free_color(order):
                                                 f"colour free among its earlier neighbours is {first_free}")
 
 
+def test_greedy_returns_the_number_of_colors():
+    """`_greedy` itself returns n_colors: `color_vertices` reads it to refuse a mesh needing too many colours."""
+    require("coloring")
+    from solver.mesh.coloring import _greedy
+
+    tets, n = shuffled(bar(cells=(6, 2, 2)), seed=3)
+    offsets, neighbours = vertex_neighbours(tets, n)
+    colors = np.full(n, -1, dtype=np.int32)
+    n_colors = _greedy(offsets.astype(np.int32), neighbours.astype(np.int32), np.arange(n, dtype=np.int32), colors)
+    assert n_colors == colors.max() + 1, f"_greedy returned n_colors = {n_colors}, but it used {colors.max() + 1} colours"
+
+
 def test_a_larger_shuffled_mesh():
     tets, n = shuffled(bar(cells=(16, 4, 4)), seed=1)
     result = color(tets, n)

@@ -3,9 +3,64 @@ import numpy as np
 import pytest
 
 import solver
-from gradelib import bar, require, simulation
+from gradelib import (bar, elastic_gradient, elastic_hessian_blocks, reference, require, simulation,
+                      student_local_systems)
 
 pytestmark = pytest.mark.task("vbd_sweep")
+
+
+# Each term of f_i = -dG/dx_i and H_i = d2G/dx_i2 on its own, against G built from the given stress P(F):
+# G(x) = sum_i m_i/(2 h^2) |x_i - y_i|^2 + sum_t vol_t Psi(F_t).
+def deformed(mesh, seed=0, scale=0.01):
+    """The rest shape with every vertex moved by up to about `scale` metres (no tet inverted)."""
+    return mesh.vertices + np.random.default_rng(seed).normal(scale=scale, size=mesh.vertices.shape)
+
+
+def inertia_force(y, x, m, h):
+    return (m / h ** 2)[:, None] * (y - x)
+
+
+def test_inertia_term_of_the_force():
+    require("vbd_sweep")
+    mesh = bar(cells=(2, 1, 1))
+    x = mesh.vertices.copy()                       # the rest shape: no elastic force, only inertia
+    f, _, y, m, h, free, _ = student_local_systems(mesh, x)
+    expected = inertia_force(y, x, m, h)
+    assert np.allclose(f[free], expected[free], rtol=1e-9, atol=1e-12 * np.abs(expected).max()), \
+        "the inertia term of f_i is wrong: at the rest shape (no elastic force) f_i must be m_i/h^2 (y_i - x_i)"
+
+
+def test_inertia_term_of_the_hessian():
+    require("vbd_sweep")
+    mesh = bar(cells=(2, 1, 1))
+    x = deformed(mesh)
+    _, H1, _, m1, h, free, _ = student_local_systems(mesh, x, density=1000.0)
+    _, H2, _, m2, _, _, _ = student_local_systems(mesh, x, density=2000.0)
+    expected = ((m2 - m1) / h ** 2)[:, None, None] * np.eye(3)
+    assert np.allclose((H2 - H1)[free], expected[free], rtol=1e-9, atol=1e-9 * np.abs(expected).max()), \
+        "the inertia term of H_i is wrong: doubling the density (so m_i) must add m_i/h^2 I to H_i"
+
+
+def test_elasticity_term_of_the_force():
+    require("vbd_sweep")
+    mesh = bar(cells=(2, 1, 1))
+    x = deformed(mesh)
+    f, _, y, m, h, free, material = student_local_systems(mesh, x)
+    expected = -elastic_gradient(mesh.vertices, mesh.tets, x, material.mu, material.lam)
+    elastic = f - inertia_force(y, x, m, h)
+    assert np.abs(elastic - expected)[free].max() <= 1e-7 * np.abs(expected).max(), \
+        "the elasticity term of f_i is wrong: f_i - m_i/h^2 (y_i - x_i) must be -dE/dx_i, summed over all tets around i"
+
+
+def test_elasticity_term_of_the_hessian():
+    require("vbd_sweep")
+    mesh = bar(cells=(2, 1, 1))
+    x = deformed(mesh)
+    _, H, _, m, h, free, material = student_local_systems(mesh, x)
+    expected = elastic_hessian_blocks(mesh.vertices, mesh.tets, x, material.mu, material.lam)
+    elastic = H - (m / h ** 2)[:, None, None] * np.eye(3)
+    assert np.abs(elastic - expected)[free].max() <= 1e-5 * np.abs(expected).max(), \
+        "the elasticity term of H_i is wrong: H_i - m_i/h^2 I must be d2E/dx_i2, summed over all tets around i"
 
 
 def test_every_iteration_lowers_the_incremental_potential():
@@ -33,9 +88,8 @@ def test_the_last_color_is_solved_exactly():
 
 def test_converges_to_the_newton_step():
     require("vbd_sweep")
-    sim = simulation(bar(), youngs_modulus=1e4, iterations=300)
+    sim, x_star = reference("soft_bar", iterations=300)
     x_n = sim.positions
-    x_star = sim.newton_reference()
     sim.step()
     assert solver.relative_error(sim.positions, x_star, x_n) < 1e-6
 

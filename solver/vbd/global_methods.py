@@ -4,8 +4,21 @@ the newton wing (imported on first use, so that VBD alone never loads it).
 Both start from VBD's initial guess (`Simulation.begin_step`) and end with `Simulation.end_step`
 (translation correction, velocities, clock); what each setting means for them is in `settings.py`.
 """
+import os
+
+from ..errors import ConfigError
 from ..method import Method, multilevel_cycles
 from .state import IterationRecord
+
+# The global solvers (solver/newton/) are in this copy: the homework starter leaves them out.
+HAS_GLOBAL_SOLVERS = os.path.isdir(os.path.join(os.path.dirname(os.path.dirname(__file__)), "newton"))
+
+
+def require_global_solvers() -> None:
+    """ConfigError in a copy without the global solvers."""
+    if not HAS_GLOBAL_SOLVERS:
+        raise ConfigError("this copy has no global solvers (solver/newton/ is not in the homework starter); "
+                          "use method='vbd', and the stored reference results in grading/ for converged steps")
 
 NEWTON_STEP_TOLERANCE = 1e-8   # without a tolerance: Newton stops when its step is below this x the body's size
 

@@ -134,6 +134,8 @@ class Simulation(SimulationState):
         self.method_reason = f"method={method.value} was asked for"
         if method is Method.AUTO:
             method, self.method_reason = choose(wave_cells(mesh, material, settings.dt))
+        if method is not Method.VBD:
+            global_methods.require_global_solvers()
         self.method = method
         self._check(settings)
 
@@ -312,6 +314,7 @@ class Simulation(SimulationState):
 
     def step_problem(self):
         """The minimisation the next `step()` solves, as a `StepProblem` for the Newton reference."""
+        global_methods.require_global_solvers()
         from ..newton.oracle import StepProblem
 
         if self._in_step:
