@@ -8,6 +8,8 @@ from solver._ti import ti
 from solver.physics import contact as C
 from solver.physics.contact import PairKind
 
+pytestmark = pytest.mark.backend   # compiles Taichi kernels: re-run on CUDA
+
 VT, EE = int(PairKind.VERTEX_TRIANGLE), int(PairKind.EDGE_EDGE)
 CONTACT = solver.Contact(stiffness=1e5, radius=0.1)
 

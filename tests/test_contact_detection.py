@@ -10,6 +10,8 @@ from solver.mesh.surface import surface_primitives
 from solver.physics.contact import PairKind, edge_edge_np, point_triangle_np
 from solver.physics.contact_detection import ContactDetector
 
+pytestmark = pytest.mark.backend   # compiles Taichi kernels: re-run on CUDA
+
 VT, EE = int(PairKind.VERTEX_TRIANGLE), int(PairKind.EDGE_EDGE)
 
 

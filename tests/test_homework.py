@@ -47,6 +47,7 @@ def test_every_task_has_a_region_and_the_points_add_up():
         assert (REPO / task.chapter).exists(), task.chapter
 
 
+@pytest.mark.backend   # generating a starter runs the solution's reference steps
 def test_starter_layout_and_readme(starter):
     assert (starter / "solver" / "__init__.py").exists() and (starter / "demo" / "__main__.py").exists()
     assert (starter / "grading" / "conftest.py").exists() and (starter / "lecture_notes").is_dir()
@@ -219,6 +220,7 @@ def implement(starter: Path, task_id: str, extra_line: str = ""):
         path.write_text("".join(lines[:first] + body + lines[at + 1:]))
 
 
+@pytest.mark.backend   # generating a starter runs the solution's reference steps
 def test_coloring_picture_needs_only_the_coloring_task(tmp_path):
     """`demo render colouring` in a starter: stops with the colouring TODO, renders once task 2 alone is
     done, and computes the colouring with the student's code even where the solution cached one."""
@@ -305,6 +307,7 @@ def test_each_task_scores_without_the_tasks_after_it(tmp_path):
     assert chebyshev and all(t["reason"].startswith("TODO: chebyshev: ") for t in chebyshev), chebyshev
 
 
+@pytest.mark.backend   # generating a starter runs the solution's reference steps
 def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     out = tmp_path / "hw"
     out.mkdir()

@@ -8,6 +8,8 @@ import pytest
 
 import solver
 
+pytestmark = pytest.mark.backend   # compiles Taichi kernels: re-run on CUDA
+
 MESH = solver.box_mesh(size=(0.5, 0.1, 0.1), cells=(10, 2, 2))
 FIXED = MESH.vertices[:, 0] < 1e-9
 TIP = MESH.vertices[:, 0] > 0.5 - 1e-9
