@@ -11,9 +11,10 @@ import solver
 from solver.mesh.topology import grad_rows, rest_geometry
 from solver.physics import ground as ground_terms
 from solver.physics import inertia as inertia_terms
-from solver.physics.material import (cofactor, deformation_gradient, deformation_gradient_np, dpsi_dF, psi,
-                                     psi_np, tet_gradients_np, tet_hessian_blocks_np, tet_hessian_block,
-                                     vertex_force_hessian, vertex_gradients)
+from solver.physics.material import (cofactor, d2psi_dF2_entry, d2psi_dF2_np, deformation_gradient,
+                                     deformation_gradient_np, dpsi_dF, psi, psi_np, tet_gradients_np,
+                                     tet_hessian_blocks_np, tet_hessian_block, vertex_force_hessian,
+                                     vertex_gradients)
 
 SOLVER = Path(solver.__file__).resolve().parent
 rng = np.random.default_rng(7)
@@ -287,3 +288,26 @@ def test_elasticity_per_tet_matches_its_twin_and_finite_differences():
                                atol=1e-12 * np.abs(H_np).max())
     # elastic forces of a tet sum to zero (translation invariance)
     np.testing.assert_allclose(g_np.sum(axis=0), 0.0, atol=1e-9 * scale)
+
+
+def test_stress_hessian_entries_match_the_numpy_twin():
+    """d2psi_dF2_entry (Taichi, read by the Newton Hessian and the PCG products) against d2psi_dF2_np,
+    which tests/test_material.py checks against finite differences of the stress."""
+    mat = solver.Material(1e5, 0.45, 1000.0)
+    Fs = np.eye(3) + 0.4 * rng.standard_normal((6, 3, 3))
+    Fs[0] = np.diag([1.2, 0.9, -0.3])                                  # an inverted F too
+    out = ti.ndarray(ti.f64, (len(Fs), 3, 3, 3, 3))
+
+    @ti.kernel
+    def evaluate(Fs: ti.types.ndarray(), mu: ti.f64, lam: ti.f64, out: ti.types.ndarray()):
+        for n in range(Fs.shape[0]):
+            F = ti.Matrix.zero(ti.f64, 3, 3)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                F[a, b] = Fs[n, a, b]
+            C, J = cofactor(F), F.determinant()
+            for a, b, c, d in ti.ndrange(3, 3, 3, 3):
+                out[n, a, b, c, d] = d2psi_dF2_entry(F, C, J, a, b, c, d, mu, lam)
+
+    evaluate(Fs, mat.mu, mat.lam, out)
+    expected = d2psi_dF2_np(Fs, mat.mu, mat.lam)
+    np.testing.assert_allclose(out.to_numpy(), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())

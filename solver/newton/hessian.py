@@ -37,7 +37,8 @@ from .._ti import ti
 from ..mesh.topology import vertex_tet_adjacency
 from ..physics.ground import ground_energy, ground_gradient_z, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy, inertia_gradient
-from ..physics.material import cofactor, deformation_gradient, dpsi_dF, psi, tet_hessian_block, vertex_gradients
+from ..physics.material import (cofactor, d2psi_dF2_entry, deformation_gradient, dpsi_dF, psi, tet_hessian_block,
+                                vertex_gradients)
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 _PAIRS = ((1, 2, 0), (0, 2, 1), (0, 1, 2))    # (i, j, k): the pair and the third index
@@ -145,11 +146,6 @@ def _svd3(F):
 
 
 @ti.func
-def _levi_civita(i, j, k):
-    return (i - j) * (j - k) * (k - i) // 2
-
-
-@ti.func
 def _scaling_block(s, mu, lam, scale):
     """The 3x3 block mu I + lam c c^T + lam (J - alpha) K of dP/dF on the scalings U diag(e) V^T, with
     c = (s1 s2, s0 s2, s0 s1), K_ij = s_k off the diagonal, scale = lam (J - alpha)."""
@@ -202,8 +198,7 @@ def stress_hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_
     -lambda q q^T for each negative eigenpair from `eigensystem_kernel`; index 3a + b for F_ab."""
     for t in range(tets.shape[0]):
         F = _deformation_gradient(x, tets, grad_rows, t)
-        alpha = 1.0 + mu / lam
-        scale = lam * (F.determinant() - alpha)
+        J = F.determinant()
         C = cofactor(F)
         negative = ti.Vector.zero(ti.i32, 9)
         n_negative = 0
@@ -211,15 +206,9 @@ def stress_hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_
             if eigenvalues[t, q] < 0.0:
                 negative[n_negative] = q
                 n_negative += 1
-        # mu I + lam vec(C) vec(C)^T + lam (J - alpha) eps_ace eps_bdf F_ef
         for r, c in ti.ndrange(9, 9):
             a, b, cc, d = r // 3, r % 3, c // 3, c % 3
-            value = lam * C[a, b] * C[cc, d]
-            if r == c:
-                value += mu
-            if a != cc and b != d:
-                e, f = 3 - a - cc, 3 - b - d
-                value += scale * _levi_civita(a, cc, e) * _levi_civita(b, d, f) * F[e, f]
+            value = d2psi_dF2_entry(F, C, J, a, b, cc, d, mu, lam)
             for n in range(n_negative):
                 q = negative[n]
                 value -= eigenvalues[t, q] * eigenvectors[t, q, a, b] * eigenvectors[t, q, cc, d]

@@ -9,8 +9,9 @@ Young's modulus E and Poisson ratio nu (lecture notes, chapter 3).
 
 Each formula exists twice: as `ti.func` for the kernels, and as batched numpy (`*_np`) for the
 Newton reference and the tests, which check one against the other and against finite differences.
-F = Ds Dm^-1 (`deformation_gradient`), the per-vertex gradients B^T P (`vertex_gradients`) and the
-per-tet Hessian blocks (`tet_hessian_block`) are written here once; every solver calls them.
+F = Ds Dm^-1 (`deformation_gradient`), the stress Hessian (`d2psi_dF2_entry`), the per-vertex gradients
+B^T P (`vertex_gradients`) and the per-tet Hessian blocks (`tet_hessian_block`) are written here once;
+every solver calls them.
 """
 from dataclasses import dataclass
 
@@ -87,6 +88,28 @@ def dpsi_dF(F, mu, lam):
     """First Piola-Kirchhoff stress P = dPsi/dF (3x3, Pa)."""
     alpha = 1 + mu / lam
     return mu * F + lam * (F.determinant() - alpha) * cofactor(F)
+
+
+@ti.func
+def levi_civita(i, j, k):
+    """eps_ijk for indices in 0..2: 1 for an even permutation, -1 for an odd one, 0 otherwise."""
+    return (i - j) * (j - k) * (k - i) // 2
+
+
+@ti.func
+def d2psi_dF2_entry(F, C, J, a, b, c, d, mu, lam):
+    """dP_ab/dF_cd (one entry of the 9x9 stress Hessian) at F with C = cof(F), J = det F:
+
+        mu delta_ac delta_bd + lam C_ab C_cd + lam (J - alpha) eps_ace eps_bdf F_ef
+    """
+    alpha = 1 + mu / lam
+    value = lam * C[a, b] * C[c, d]
+    if a == c and b == d:
+        value += mu
+    if a != c and b != d:
+        e, f = 3 - a - c, 3 - b - d
+        value += lam * (J - alpha) * levi_civita(a, c, e) * levi_civita(b, d, f) * F[e, f]
+    return value
 
 
 @ti.func
