@@ -1,10 +1,14 @@
-"""Mesh connectivity in compressed sparse row (CSR) form, built once per mesh with numpy, and the
-slot-major adjacency layout the VBD sweep reads."""
+"""Derived mesh data, built once per mesh with numpy and cached: the rest geometry (Dm^-1 and rest
+volumes, `rest_geometry`), connectivity in compressed sparse row (CSR) form (`vertex_tet_adjacency`,
+`vertex_neighbours`), and the slot-major adjacency layout the VBD sweep reads (`build_topology`).
+Every solver reads Dm^-1 and the rest volumes from here."""
 import hashlib
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+
+from .cells import signed_volumes
 
 
 def vertex_tet_adjacency(tets: np.ndarray, n_vertices: int):
@@ -84,11 +88,60 @@ _topology_cache: "OrderedDict[str, Topology]" = OrderedDict()
 _TOPOLOGY_CACHE_SIZE = 8
 
 
-def grad_rows(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(M, 4, 3) rows m_k of Dm^-1 per local vertex k, so that F = sum_k x_k m_k^T."""
-    Dm = np.stack([vertices[tets[:, k]] - vertices[tets[:, 0]] for k in (1, 2, 3)], axis=-1)
+@dataclass(frozen=True, eq=False)
+class RestGeometry:
+    """The rest shape of every tet, read-only.
+
+    grad_rows (M, 4, 3): rows m_k per local vertex k, so that F = sum_k x_k m_k^T; rows 1-3 are
+    Dm^-1 (`Dm_inv`, (M, 3, 3)) and m_0 = -(m_1 + m_2 + m_3). volumes (M,): rest volumes in m^3.
+    """
+
+    grad_rows: np.ndarray
+    volumes: np.ndarray
+
+    def __post_init__(self):
+        self.grad_rows.flags.writeable = False
+        self.volumes.flags.writeable = False
+
+    @property
+    def Dm_inv(self) -> np.ndarray:
+        """(M, 3, 3) inverse rest edge matrices Dm^-1, Dm = [X_1 - X_0, X_2 - X_0, X_3 - X_0]."""
+        return self.grad_rows[:, 1:]
+
+
+_rest_cache: "OrderedDict[str, RestGeometry]" = OrderedDict()
+
+
+def _digest(*arrays) -> str:
+    digest = hashlib.sha1()
+    for a in arrays:
+        digest.update(a.dtype.str.encode())
+        digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.hexdigest()
+
+
+def rest_geometry(vertices: np.ndarray, tets: np.ndarray) -> RestGeometry:
+    """The `RestGeometry` of rest positions vertices (N, 3) and positively oriented tets (M, 4): the
+    one place Dm^-1 and the rest volumes are computed. Cached in memory by the bytes of both arrays."""
+    X = np.asarray(vertices, dtype=np.float64)
+    T = np.asarray(tets, dtype=np.int64)
+    key = _digest(X, T)
+    if key in _rest_cache:
+        _rest_cache.move_to_end(key)
+        return _rest_cache[key]
+    Dm = np.stack([X[T[:, k]] - X[T[:, 0]] for k in (1, 2, 3)], axis=-1)
     Dm_inv = np.linalg.inv(Dm)
-    return np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
+    rest = RestGeometry(grad_rows=np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1),
+                        volumes=signed_volumes(X, T))
+    _rest_cache[key] = rest
+    if len(_rest_cache) > _TOPOLOGY_CACHE_SIZE:
+        _rest_cache.popitem(last=False)
+    return rest
+
+
+def grad_rows(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(M, 4, 3) rows m_k of Dm^-1 per local vertex k, so that F = sum_k x_k m_k^T (`rest_geometry`)."""
+    return rest_geometry(vertices, tets).grad_rows
 
 
 def build_topology(vertices: np.ndarray, tets: np.ndarray, colors: np.ndarray) -> Topology:
@@ -121,8 +174,8 @@ def _build(X: np.ndarray, T: np.ndarray, colors: np.ndarray) -> Topology:
     ends = np.cumsum(counts)
     color_ranges = tuple((int(e - n), int(e)) for n, e in zip(counts, ends))
 
-    rows = grad_rows(X, T)
-    vol = np.abs(np.linalg.det(np.stack([X[T[:, k]] - X[T[:, 0]] for k in (1, 2, 3)], axis=-1))) / 6.0
+    rest = rest_geometry(X, T)
+    rows, vol = rest.grad_rows, rest.volumes
     offsets, adj_tet, adj_local = vertex_tet_adjacency(T, len(X))
     degree = np.diff(offsets)[order]
     slot_offsets = np.concatenate([[0], np.cumsum(degree)])

@@ -34,7 +34,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._ti import ti
-from ..physics.material import cofactor, dpsi_dF, psi
+from ..mesh.topology import vertex_tet_adjacency
+from ..physics.ground import ground_energy, ground_gradient_z, ground_hessian_zz
+from ..physics.inertia import inertia_block, inertia_energy, inertia_gradient
+from ..physics.material import (cofactor, d2psi_dF2_entry, deformation_gradient, dpsi_dF, psi, tet_hessian_block,
+                                vertex_gradients)
 
 _SQRT_HALF = 1.0 / math.sqrt(2.0)
 _PAIRS = ((1, 2, 0), (0, 2, 1), (0, 1, 2))    # (i, j, k): the pair and the third index
@@ -52,12 +56,16 @@ def _grad_row(grad_rows: ti.template(), t, k):
 
 
 @ti.func
+def _Dm_inv(grad_rows: ti.template(), t):
+    """Dm^-1 of tet t: rows 1-3 of its gradient rows."""
+    return ti.Matrix.rows([_grad_row(grad_rows, t, 1), _grad_row(grad_rows, t, 2), _grad_row(grad_rows, t, 3)])
+
+
+@ti.func
 def _deformation_gradient(x: ti.template(), tets: ti.template(), grad_rows: ti.template(), t):
-    """F = sum_k x_k m_k^T of tet t."""
-    F = ti.Matrix.zero(ti.f64, 3, 3)
-    for k in ti.static(range(4)):
-        F += _vec3(x, tets[t, k]).outer_product(_grad_row(grad_rows, t, k))
-    return F
+    """F of tet t at x (N, 3), by `physics.material.deformation_gradient`."""
+    return deformation_gradient(_vec3(x, tets[t, 0]), _vec3(x, tets[t, 1]), _vec3(x, tets[t, 2]),
+                                _vec3(x, tets[t, 3]), _Dm_inv(grad_rows, t))
 
 
 @ti.func
@@ -138,11 +146,6 @@ def _svd3(F):
 
 
 @ti.func
-def _levi_civita(i, j, k):
-    return (i - j) * (j - k) * (k - i) // 2
-
-
-@ti.func
 def _scaling_block(s, mu, lam, scale):
     """The 3x3 block mu I + lam c c^T + lam (J - alpha) K of dP/dF on the scalings U diag(e) V^T, with
     c = (s1 s2, s0 s2, s0 s1), K_ij = s_k off the diagonal, scale = lam (J - alpha)."""
@@ -195,8 +198,7 @@ def stress_hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_
     -lambda q q^T for each negative eigenpair from `eigensystem_kernel`; index 3a + b for F_ab."""
     for t in range(tets.shape[0]):
         F = _deformation_gradient(x, tets, grad_rows, t)
-        alpha = 1.0 + mu / lam
-        scale = lam * (F.determinant() - alpha)
+        J = F.determinant()
         C = cofactor(F)
         negative = ti.Vector.zero(ti.i32, 9)
         n_negative = 0
@@ -204,27 +206,13 @@ def stress_hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_
             if eigenvalues[t, q] < 0.0:
                 negative[n_negative] = q
                 n_negative += 1
-        # mu I + lam vec(C) vec(C)^T + lam (J - alpha) eps_ace eps_bdf F_ef
         for r, c in ti.ndrange(9, 9):
             a, b, cc, d = r // 3, r % 3, c // 3, c % 3
-            value = lam * C[a, b] * C[cc, d]
-            if r == c:
-                value += mu
-            if a != cc and b != d:
-                e, f = 3 - a - cc, 3 - b - d
-                value += scale * _levi_civita(a, cc, e) * _levi_civita(b, d, f) * F[e, f]
+            value = d2psi_dF2_entry(F, C, J, a, b, cc, d, mu, lam)
             for n in range(n_negative):
                 q = negative[n]
                 value -= eigenvalues[t, q] * eigenvectors[t, q, a, b] * eigenvectors[t, q, cc, d]
             A9[t, r, c] = value
-
-
-@ti.func
-def _ground_depth(z, free_flag, has_ground, ground_height):
-    depth = 0.0
-    if has_ground != 0 and free_flag != 0:
-        depth = ti.max(ground_height - z, 0.0)
-    return depth
 
 
 @ti.kernel
@@ -240,11 +228,9 @@ def energy_gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: t
     for t in range(tets.shape[0]):
         F = _deformation_gradient(x, tets, grad_rows, t)
         total += volumes[t] * psi(F, mu, lam)
-        P = dpsi_dF(F, mu, lam)
-        for k in ti.static(range(4)):
-            f = volumes[t] * (P @ _grad_row(grad_rows, t, k))
-            for c in ti.static(range(3)):
-                tet_forces[t, k, c] = f[c]
+        rows = volumes[t] * vertex_gradients(dpsi_dF(F, mu, lam), _Dm_inv(grad_rows, t))
+        for k, c in ti.static(ti.ndrange(4, 3)):
+            tet_forces[t, k, c] = rows[k, c]
     for i in range(x.shape[0]):
         gi = ti.Vector.zero(ti.f64, 3)
         if free[i] != 0:
@@ -252,11 +238,12 @@ def energy_gradient_kernel(x: ti.types.ndarray(), y: ti.types.ndarray(), tets: t
                 code = incidence[n]
                 for c in ti.static(range(3)):
                     gi[c] += tet_forces[code // 4, code % 4, c]
-            d = _vec3(x, i) - _vec3(y, i)
-            depth = _ground_depth(x[i, 2], free[i], has_ground, ground_height)
-            total += 0.5 * masses[i] / (h * h) * d.dot(d) + 0.5 * ground_stiffness * depth * depth
-            gi += masses[i] / (h * h) * d
-            gi[2] -= ground_stiffness * depth
+            m_h2 = masses[i] / (h * h)
+            total += inertia_energy(m_h2, _vec3(x, i), _vec3(y, i))
+            gi += inertia_gradient(m_h2, _vec3(x, i), _vec3(y, i))
+            if has_ground != 0:
+                total += ground_energy(x[i, 2], ground_height, ground_stiffness)
+                gi[2] += ground_gradient_z(x[i, 2], ground_height, ground_stiffness)
         for c in ti.static(range(3)):
             g[i, c] = gi[c]
     return total
@@ -298,7 +285,8 @@ def _tet_blocks(x: ti.template(), tets: ti.template(), grad_rows: ti.template(),
     F = _deformation_gradient(x, tets, grad_rows, t)
     vol = volumes[t]
     alpha = 1.0 + mu / lam
-    scale = lam * (F.determinant() - alpha)
+    J = F.determinant()
+    scale = lam * (J - alpha)
     m = ti.Matrix.zero(ti.f64, 4, 3)
     for k, b in ti.static(ti.ndrange(4, 3)):
         m[k, b] = grad_rows[t, k, b]
@@ -326,13 +314,10 @@ def _tet_blocks(x: ti.template(), tets: ti.template(), grad_rows: ti.template(),
             n = -2 - n
         if n >= 0:
             k, l = kl // 4, kl % 4
-            mk = ti.Vector([m[k, 0], m[k, 1], m[k, 2]])
-            ml = ti.Vector([m[l, 0], m[l, 1], m[l, 2]])
-            w = scale * (F @ mk.cross(ml))
-            block = mu * mk.dot(ml) * ti.Matrix.identity(ti.f64, 3) + lam * ti.Vector(
-                [Cm[k, 0], Cm[k, 1], Cm[k, 2]]).outer_product(ti.Vector([Cm[l, 0], Cm[l, 1], Cm[l, 2]]))
-            block += ti.Matrix([[0.0, w[2], -w[1]], [-w[2], 0.0, w[0]], [w[1], -w[0], 0.0]])   # eps_ace w_e
-            block *= vol
+            block = tet_hessian_block(F, J, ti.Vector([Cm[k, 0], Cm[k, 1], Cm[k, 2]]),
+                                      ti.Vector([Cm[l, 0], Cm[l, 1], Cm[l, 2]]),
+                                      ti.Vector([m[k, 0], m[k, 1], m[k, 2]]), ti.Vector([m[l, 0], m[l, 1], m[l, 2]]),
+                                      vol, mu, lam)
             for q in range(9):
                 if weights[q] != 0.0:
                     rk = ti.Vector([R[4 * q + k, 0], R[4 * q + k, 1], R[4 * q + k, 2]])
@@ -373,10 +358,9 @@ def hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: t
                 H[a, c] += slots[n, a, c]
         i = block_vertex[b]
         if i >= 0:
-            for c in ti.static(range(3)):
-                H[c, c] += masses[i] / (h * h)
-            if has_ground != 0 and x[i, 2] < ground_height:
-                H[2, 2] += ground_stiffness
+            H += inertia_block(masses[i] / (h * h))
+            if has_ground != 0:
+                H[2, 2] += ground_hessian_zz(x[i, 2], ground_height, ground_stiffness)
         if full != 0:
             for a, c in ti.static(ti.ndrange(3, 3)):
                 data[block_entry[b] + a * block_row_length[b] + c] = H[a, c]
@@ -467,9 +451,8 @@ class HessianPattern:
         n_lower = np.bincount(entry_f[vcols < entry_f], minlength=self.n_free)
         self.lower_blocks = np.stack([lower, self.upper_indptr[3 * entry_f[lower]] + 3 * entry_rank[lower],
                                       3 * n_lower[entry_f[lower]] + 1], axis=1).astype(np.int32)
-        self.incidence = np.argsort(tets.ravel(), kind="stable").astype(np.int32)       # 4 t + k, by vertex
-        self.incidence_start = np.concatenate([[0], np.cumsum(np.bincount(tets.ravel(), minlength=len(free)))]) \
-            .astype(np.int32)
+        self.incidence_start, incident_tet, incident_local = vertex_tet_adjacency(tets, len(free))
+        self.incidence = 4 * incident_tet + incident_local                               # 4 t + k, by vertex
         self.tet_forces = np.zeros((len(tets), 4, 3))
         self.data = np.zeros(self.nnz)
         self.A9 = np.zeros((len(tets), 9, 9))

@@ -31,6 +31,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..errors import ConfigError
+from ..mesh.topology import rest_geometry
+from ..physics.ground import ground_hessian_diag_np
+from ..physics.inertia import inertia_hessian_diag_np
 from .direct import spd_solver
 from .hessian import HessianPattern, StepKernels
 from .oracle import StepProblem
@@ -122,13 +125,11 @@ class TwoLevelVBD:
         cage = pro.cage
         fill = cage_fill(mesh, pro)
         used = fill > 0
-        X = cage.vertices
         T = cage.tets[used]
-        Dm = np.stack([X[T[:, k]] - X[T[:, 0]] for k in (1, 2, 3)], axis=-1)
-        Dm_inv = np.linalg.inv(Dm)
+        rest = rest_geometry(cage.vertices, T)
         self._cage_tets = T
-        self._cage_grad_rows = np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
-        self._cage_volumes = np.abs(np.linalg.det(Dm)) / 6.0 * fill[used]
+        self._cage_grad_rows = rest.grad_rows
+        self._cage_volumes = rest.volumes * fill[used]
         kept = np.zeros(cage.n_vertices, dtype=bool)
         kept[pro.kept] = True
         self._cage_pattern = HessianPattern(T, kept)
@@ -138,7 +139,8 @@ class TwoLevelVBD:
         self._restrict_lu = spla.splu((WtW + eps * sp.identity(cage.n_vertices, format="csc")).tocsc())
         self._restrict_eps = eps
         # fine constrained vertices pull the cage with the stiffness of the fine elements there
-        vertex_volume = np.bincount(mesh.tets.ravel(), weights=np.repeat(mesh.rest_volumes() / 4, 4),
+        fine_volumes = rest_geometry(mesh.vertices, mesh.tets).volumes
+        vertex_volume = np.bincount(mesh.tets.ravel(), weights=np.repeat(fine_volumes / 4, 4),
                                     minlength=mesh.n_vertices)
         constrained = np.flatnonzero(~self._free)
         Wc = W[constrained][:, pro.kept]
@@ -159,9 +161,9 @@ class TwoLevelVBD:
         P3 = self.prolongation.P3
         if self.operator is CoarseOperator.GALERKIN:
             return (P3.T @ problem.hessian(x) @ P3).tocsr()
-        diag = np.repeat(problem.masses / problem.h ** 2 * problem.free, 3)
+        diag = inertia_hessian_diag_np(problem.masses, problem.h, problem.free)
         if problem.ground is not None:
-            diag[2::3] += problem.ground.stiffness * (problem.free & (x[:, 2] < problem.ground.height))
+            diag += ground_hessian_diag_np(problem.ground, x, problem.free)
         inertia = P3.T @ sp.diags(diag) @ P3
         n_cage = self.prolongation.cage.n_vertices
         cage_problem = StepProblem(tets=self._cage_tets, grad_rows=self._cage_grad_rows,

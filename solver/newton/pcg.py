@@ -31,6 +31,9 @@ from ..mesh.coloring import color_vertices
 from ..errors import ConfigError, enum_value
 from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 from .direct import LinearSolver, global_newton
+from ..physics.ground import ground_hessian_zz
+from ..physics.inertia import inertia_block
+from ..physics.material import deformation_gradient, vertex_gradients
 from .hessian import StepKernels
 
 
@@ -68,11 +71,16 @@ def _row(a: ti.template(), i):
 
 
 @ti.func
+def _matrix_row(M, k: ti.template()):
+    return ti.Vector([M[k, 0], M[k, 1], M[k, 2]])
+
+
+@ti.func
 def _diagonal_term(masses: ti.template(), x: ti.template(), i, h, has_ground, ground_height, ground_stiffness):
-    """m_i/h^2 I plus the contact stiffness on z for a vertex below the ground."""
-    D = ti.Matrix.identity(ti.f64, 3) * masses[i] / (h * h)
-    if has_ground != 0 and x[i, 2] < ground_height:
-        D[2, 2] += ground_stiffness
+    """The vertex's inertia block m_i/h^2 I plus its ground block (penalty stiffness on z)."""
+    D = inertia_block(masses[i] / (h * h))
+    if has_ground != 0:
+        D[2, 2] += ground_hessian_zz(x[i, 2], ground_height, ground_stiffness)
     return D
 
 
@@ -89,18 +97,22 @@ def hessian_vector_kernel(A9: ti.types.ndarray(), tets: ti.types.ndarray(), grad
         for c in ti.static(range(3)):
             out[i, c] = w[c]
     for t in range(tets.shape[0]):
-        dF = ti.Matrix.zero(ti.f64, 3, 3)
+        v_t = ti.Matrix.zero(ti.f64, 4, 3)                 # row k: v at local vertex k, 0 if constrained
         for k in ti.static(range(4)):
-            vk = tets[t, k]
-            if free[vk] != 0:
-                dF += _row(v, vk).outer_product(ti.Vector([grad_rows[t, k, 0], grad_rows[t, k, 1], grad_rows[t, k, 2]]))
-        dP = volumes[t] * _stress_times(A9, t, dF)
-        for k in ti.static(range(4)):
-            vk = tets[t, k]
-            if free[vk] != 0:
-                f = dP @ ti.Vector([grad_rows[t, k, 0], grad_rows[t, k, 1], grad_rows[t, k, 2]])
+            if free[tets[t, k]] != 0:
                 for c in ti.static(range(3)):
-                    out[vk, c] += f[c]
+                    v_t[k, c] = v[tets[t, k], c]
+        Dm_inv = ti.Matrix.zero(ti.f64, 3, 3)              # rows 1-3 of the gradient rows
+        for k, c in ti.static(ti.ndrange(3, 3)):
+            Dm_inv[k, c] = grad_rows[t, k + 1, c]
+        dF = deformation_gradient(_matrix_row(v_t, 0), _matrix_row(v_t, 1), _matrix_row(v_t, 2),
+                                  _matrix_row(v_t, 3), Dm_inv)
+        rows = volumes[t] * vertex_gradients(_stress_times(A9, t, dF), Dm_inv)
+        for k in ti.static(range(4)):
+            vk = tets[t, k]
+            if free[vk] != 0:
+                for c in ti.static(range(3)):
+                    out[vk, c] += rows[k, c]
 
 
 @ti.kernel

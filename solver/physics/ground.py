@@ -2,9 +2,12 @@
 
     E_c(x_i) = k_c/2 d_i^2,   d_i = max(0, height - z_i)            (penetration depth)
 
-Written once and used three ways: the `ti.func`s below by the VBD sweep and the energy kernel, the
-numpy twins (`*_np`) by the Newton reference. Friction is not a potential: it acts on the tangential
-displacement u of the current step, with IPC's smoothed Coulomb law below the sliding speed.
+Written once: the `ti.func`s below (depth, energy, gradient, the 3x3 block with friction for the VBD
+sweep, the diagonal Hessian entry for the Newton Hessian, the PCG products and the translation
+correction) and their numpy twins (`*_np`: the Newton reference, the two-level coarse operator). The
+comparison of a vertex with the plane is `ground_depth` (`ground_depth_np`) and nowhere else.
+Friction is not a potential: it acts on the tangential displacement u of the current step, with IPC's
+smoothed Coulomb law below the sliding speed.
 """
 from dataclasses import dataclass
 
@@ -54,6 +57,34 @@ def friction_scale(s, eps_u):
 
 
 @ti.func
+def ground_depth(z_i, height):
+    """Penetration depth d_i = max(0, height - z_i) in m of a vertex at height z_i: the one ground test."""
+    return ti.max(height - z_i, 0)
+
+
+@ti.func
+def ground_energy(z_i, height, k_c):
+    """Penalty energy k_c/2 d_i^2 of one vertex at height z_i (J)."""
+    depth = ground_depth(z_i, height)
+    return k_c / 2 * depth * depth
+
+
+@ti.func
+def ground_gradient_z(z_i, height, k_c):
+    """dE_c/dz_i = -k_c d_i (N); the x and y components are 0."""
+    return -k_c * ground_depth(z_i, height)
+
+
+@ti.func
+def ground_hessian_zz(z_i, height, k_c):
+    """d2E_c/dz_i2 = k_c for a penetrating vertex, else 0 (N/m): the only nonzero entry of its 3x3 block."""
+    k = k_c * 0
+    if ground_depth(z_i, height) > 0:
+        k = k_c
+    return k
+
+
+@ti.func
 def ground_force_hessian(x_i, u, h, height, k_c, mu_f, friction_speed, dtype: ti.template()):
     """Contact force f (3,) and Hessian H (3x3) on a vertex at x_i that moved u = x_i - x_n,i this step.
 
@@ -63,7 +94,7 @@ def ground_force_hessian(x_i, u, h, height, k_c, mu_f, friction_speed, dtype: ti
     """
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
-    depth = height - x_i[2]
+    depth = ground_depth(x_i[2], height)
     if depth > 0:
         f[2] = k_c * depth
         H[2, 2] = k_c
@@ -74,13 +105,6 @@ def ground_force_hessian(x_i, u, h, height, k_c, mu_f, friction_speed, dtype: ti
             H[0, 0] += k_f
             H[1, 1] += k_f
     return f, H
-
-
-@ti.func
-def ground_energy(z_i, height, k_c):
-    """Penalty energy k_c/2 d^2 of one vertex at height z_i (J)."""
-    depth = ti.max(height - z_i, 0)
-    return k_c / 2 * depth * depth
 
 
 def ground_depth_np(ground: Ground, x: np.ndarray, free: np.ndarray) -> np.ndarray:

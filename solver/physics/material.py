@@ -9,6 +9,9 @@ Young's modulus E and Poisson ratio nu (lecture notes, chapter 3).
 
 Each formula exists twice: as `ti.func` for the kernels, and as batched numpy (`*_np`) for the
 Newton reference and the tests, which check one against the other and against finite differences.
+F = Ds Dm^-1 (`deformation_gradient`), the stress Hessian (`d2psi_dF2_entry`), the per-vertex gradients
+B^T P (`vertex_gradients`) and the per-tet Hessian blocks (`tet_hessian_block`) are written here once;
+every solver calls them.
 """
 from dataclasses import dataclass
 
@@ -88,6 +91,64 @@ def dpsi_dF(F, mu, lam):
 
 
 @ti.func
+def levi_civita(i, j, k):
+    """eps_ijk for indices in 0..2: 1 for an even permutation, -1 for an odd one, 0 otherwise."""
+    return (i - j) * (j - k) * (k - i) // 2
+
+
+@ti.func
+def d2psi_dF2_entry(F, C, J, a, b, c, d, mu, lam):
+    """dP_ab/dF_cd (one entry of the 9x9 stress Hessian) at F with C = cof(F), J = det F:
+
+        mu delta_ac delta_bd + lam C_ab C_cd + lam (J - alpha) eps_ace eps_bdf F_ef
+    """
+    alpha = 1 + mu / lam
+    value = lam * C[a, b] * C[c, d]
+    if a == c and b == d:
+        value += mu
+    if a != c and b != d:
+        e, f = 3 - a - c, 3 - b - d
+        value += lam * (J - alpha) * levi_civita(a, c, e) * levi_civita(b, d, f) * F[e, f]
+    return value
+
+
+@ti.func
+def deformation_gradient(x0, x1, x2, x3, Dm_inv):
+    """F = Ds Dm^-1 (3x3) of a tet with vertices x0..x3, Ds = [x1 - x0, x2 - x0, x3 - x0].
+
+    Linear in x: with the variations v_k of the vertices in place of x_k it gives dF = B v.
+    """
+    return ti.Matrix.cols([x1 - x0, x2 - x0, x3 - x0]) @ Dm_inv
+
+
+@ti.func
+def vertex_gradients(P, Dm_inv):
+    """B^T vec(P) (4x3): row k is P m_k, with m_k the row of Dm^-1 of local vertex k (k = 1..3) and
+    m_0 = -(m_1 + m_2 + m_3). With P = dPsi/dF, vol times row k is d(vol Psi)/dx_k."""
+    G = P @ Dm_inv.transpose()                      # column k - 1: P m_k
+    g1 = ti.Vector([G[0, 0], G[1, 0], G[2, 0]])
+    g2 = ti.Vector([G[0, 1], G[1, 1], G[2, 1]])
+    g3 = ti.Vector([G[0, 2], G[1, 2], G[2, 2]])
+    return ti.Matrix.rows([-(g1 + g2 + g3), g1, g2, g3])
+
+
+@ti.func
+def tet_hessian_block(F, J, cof_m_k, cof_m_l, m_k, m_l, vol, mu, lam):
+    """Block (k, l) (3x3) of a tet's exact Hessian d2(vol Psi)/dx_k dx_l = vol B_k^T (dP/dF) B_l:
+
+        vol (mu (m_k . m_l) I + lam (C m_k)(C m_l)^T + lam (J - alpha) eps_ace (F (m_k x m_l))_e)
+
+    with C = cof(F), cof_m_k = C m_k (= dJ/dx_k), J = det F and m_k the rows of Dm^-1 (see
+    `vertex_gradients`). Not projected: the Newton Hessian projects it (solver/newton/hessian.py).
+    """
+    alpha = 1 + mu / lam
+    w = lam * (J - alpha) * (F @ m_k.cross(m_l))
+    block = ti.Matrix.diag(3, mu * m_k.dot(m_l)) + lam * cof_m_k.outer_product(cof_m_l)
+    block += ti.Matrix([[0.0, w[2], -w[1]], [-w[2], 0.0, w[0]], [w[1], -w[0], 0.0]])   # eps_ace w_e
+    return vol * block
+
+
+@ti.func
 def vertex_force_hessian(Fm, J, w, m_sq, vol, mu, lam):
     """One tet's contribution (f, H) to the force f_i and Hessian H_i of one of its vertices i.
 
@@ -145,3 +206,28 @@ def d2psi_dF2_np(F: np.ndarray, mu: float, lam: float) -> np.ndarray:
     d2J = np.einsum("ace,bdf,...ef->...abcd", _LEVI_CIVITA, _LEVI_CIVITA, F, optimize=True)
     return (mu * eye + lam * np.einsum("...ab,...cd->...abcd", C, C)
             + lam * (J - alpha)[..., None, None, None, None] * d2J)
+
+
+def deformation_gradient_np(x: np.ndarray, tets: np.ndarray, Dm_inv: np.ndarray) -> np.ndarray:
+    """(M, 3, 3) F = Ds Dm^-1 of every tet; x (N, 3), tets (M, 4), Dm_inv (M, 3, 3)."""
+    Ds = np.stack([x[tets[:, k]] - x[tets[:, 0]] for k in (1, 2, 3)], axis=-1)
+    return Ds @ Dm_inv
+
+
+def gradient_rows_np(Dm_inv: np.ndarray) -> np.ndarray:
+    """(M, 4, 3) rows m_k of every tet: m_1..m_3 the rows of Dm^-1 (M, 3, 3), m_0 = -(m_1 + m_2 + m_3)."""
+    return np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1)
+
+
+def tet_gradients_np(F: np.ndarray, Dm_inv: np.ndarray, volumes: np.ndarray, mu: float, lam: float) -> np.ndarray:
+    """(M, 4, 3) d(vol Psi)/dx_k = vol P m_k of every tet's four vertices; F, Dm_inv (M, 3, 3), volumes (M,)."""
+    P = dpsi_dF_np(F, mu, lam)
+    return volumes[:, None, None] * np.einsum("tab,tkb->tka", P, gradient_rows_np(Dm_inv))
+
+
+def tet_hessian_blocks_np(F: np.ndarray, Dm_inv: np.ndarray, volumes: np.ndarray, mu: float,
+                          lam: float) -> np.ndarray:
+    """(M, 4, 4, 3, 3) exact blocks d2(vol Psi)/dx_k dx_l = vol B_k^T (dP/dF) B_l, not projected."""
+    m = gradient_rows_np(Dm_inv)
+    A = d2psi_dF2_np(F, mu, lam)
+    return volumes[:, None, None, None, None] * np.einsum("tabcd,tkb,tld->tklac", A, m, m, optimize=True)

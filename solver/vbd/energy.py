@@ -2,24 +2,17 @@
 
     G(x) = sum_free m_i/(2h^2) |x_i - y_i|^2 + sum_tets vol Psi(F) + sum_free k_c/2 max(0, z0 - z_i)^2
 
-(lecture notes, chapter 1). The numpy twin is `newton.StepProblem.energy`.
+(lecture notes, chapter 1), each term from its file in solver/physics/. The numpy twin is
+`newton.StepProblem.energy`.
 state (STATE_ROWS, N) 3-vectors; mass (N,); free (N,) int32; tets (M,) 4-vectors of int32;
 Dm_inv (M,) 3x3 inverse rest edge matrices; volume (M,) rest volumes; params (PARAM_COUNT,).
 """
 from .._ti import ti
 
 from ..physics.ground import ground_energy
+from ..physics.inertia import inertia_energy
+from ..physics.material import deformation_gradient, psi
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, LAM, MU, TIME_STEP, X, Y
-from ..physics.material import psi
-
-
-@ti.func
-def deformation_gradient(state: ti.template(), tets: ti.template(), Dm_inv: ti.template(), t):
-    """F = Ds Dm^-1 of tet t at the current positions."""
-    a, b, c, d = tets[t][0], tets[t][1], tets[t][2], tets[t][3]
-    x0 = state[X, a]
-    Ds = ti.Matrix.cols([state[X, b] - x0, state[X, c] - x0, state[X, d] - x0])
-    return Ds @ Dm_inv[t]
 
 
 @ti.kernel
@@ -31,11 +24,11 @@ def incremental_potential(state: ti.types.ndarray(), mass: ti.types.ndarray(), f
     inv_h2 = 1 / params[TIME_STEP] ** 2
     for i in range(state.shape[1]):
         if free[i]:
-            d = state[X, i] - state[Y, i]
-            G += ti.cast(inv_h2 * mass[i] * d.dot(d) / 2, ti.f64)
+            G += ti.cast(inertia_energy(inv_h2 * mass[i], state[X, i], state[Y, i]), ti.f64)
             if params[GROUND] > 0:
                 G += ti.cast(ground_energy(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS]), ti.f64)
     for t in range(tets.shape[0]):
-        F = deformation_gradient(state, tets, Dm_inv, t)
+        a, b, c, d = tets[t][0], tets[t][1], tets[t][2], tets[t][3]
+        F = deformation_gradient(state[X, a], state[X, b], state[X, c], state[X, d], Dm_inv[t])
         G += ti.cast(volume[t] * psi(F, params[MU], params[LAM]), ti.f64)
     return G

@@ -14,6 +14,8 @@ potential and stays out of K_c (its lagged stiffness would block the correction 
 """
 from .._ti import ti
 
+from ..physics.ground import ground_hessian_zz
+from ..physics.inertia import inertia_block
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X
 from .vertex_solve import force_hessian
 
@@ -32,9 +34,10 @@ def translation_system(state: ti.types.ndarray(), mass: ti.types.ndarray(), colo
     for k in range(color_order.shape[0]):
         i = color_order[k]
         f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-        K = ti.Vector([1, 1, 1], dt=dtype) * (inv_h2 * mass[i])
-        if params[GROUND] > 0 and state[X, i][2] < params[GROUND_HEIGHT]:
-            K[2] += params[GROUND_STIFFNESS]
+        M = inertia_block(ti.cast(inv_h2 * mass[i], dtype))
+        K = ti.Vector([M[0, 0], M[1, 1], M[2, 2]])
+        if params[GROUND] > 0:
+            K[2] += ground_hessian_zz(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS])
         out[0] += ti.cast(f, ti.f64)
         out[1] += ti.cast(K, ti.f64)
 

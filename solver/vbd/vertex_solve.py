@@ -6,9 +6,10 @@ VBD [Chen et al. 2024] Alg. 1: for each colour, in parallel over its vertices i,
     H_i = m_i/h^2 I         + sum_{tets t of i} vol_t d2Psi/dx_i2    (Eq. 6)
     x_i <- x_i + H_i^-1 f_i                                           (Alg. 1, lines 7-10)
 
-plus optional damping (Eq. 10-11) and ground contact (`contact.py`). The kernels are module-level and
-take arrays (`layout.py`), so they compile once per process and every `Simulation` shares them; one
-launch of `vbd_iteration` runs all colours of one iteration.
+plus optional damping (Eq. 10-11) and ground contact; each term of G comes from its file in
+solver/physics/ (inertia, material, ground). The kernels are module-level and take arrays
+(`layout.py`), so they compile once per process and every `Simulation` shares them; one launch of
+`vbd_iteration` runs all colours of one iteration.
 
 Arguments shared by the functions below (S free vertices in colour order, E = their (vertex, tet) pairs):
 state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of each slot;
@@ -18,6 +19,7 @@ params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 from .._ti import ti
 
 from ..physics.ground import ground_force_hessian
+from ..physics.inertia import inertia_block, inertia_gradient
 from .layout import (ADJ_FLOATS, C, DAMPING, FRICTION, FRICTION_SPEED, GROUND, GROUND_HEIGHT,
                      GROUND_STIFFNESS, KEEP_ORIENTATION, LAM, M_SQ, MU, Q, TIME_STEP, VOLUME, X,
                      X_N, Y)
@@ -58,8 +60,8 @@ def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.tem
     x_i = state[X, i]
     # BEGIN SOLUTION task=vbd_sweep
     m_h2 = mass[i] / (h * h)
-    f = m_h2 * (state[Y, i] - x_i)
-    H = ti.Matrix.diag(3, m_h2)
+    f = -inertia_gradient(m_h2, x_i, state[Y, i])
+    H = inertia_block(m_h2)
     f_el = ti.Vector.zero(dtype, 3)
     H_el = ti.Matrix.zero(dtype, 3, 3)
     for e in range(offsets[k], offsets[k + 1]):
