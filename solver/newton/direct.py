@@ -5,15 +5,20 @@ Same iteration, line search and convergence test as the numpy oracle `solver.new
 and the projected Hessian come from the kernels in `solver.hessian`, into a CSR pattern built once
 per mesh and free mask, and the linear system is solved by a sparse factorisation of that pattern:
 
-- `LinearSolver.CHOLMOD`: CHOLMOD's supernodal Cholesky through `cvxopt` (pip package, GPL-3, its
-  own BLAS), with the fill-reducing ordering and symbolic analysis once per pattern; each iteration only
-  refactorises the numbers. Fastest measured at every size here (benchmarks/newton_speed.py).
-- `LinearSolver.QDLDL`: LDL^T (pip package `qdldl`) with AMD ordering and symbolic analysis once per
-  pattern; each iteration only refactorises the numbers. Not supernodal: slow above ~10^4 unknowns.
-- `LinearSolver.CHOLESPY`: CHOLMOD's Cholesky through `cholespy`, analysed with every factorisation.
+- `LinearSolver.CHOLMOD`: CHOLMOD's supernodal Cholesky through `cvxopt`, with the fill-reducing
+  ordering and symbolic analysis once per pattern; each iteration only refactorises the numbers. Fastest
+  measured at every size here (benchmarks/newton_speed.py), but GPL-3, so an optional extra
+  (`pip install -r requirements-cholmod.txt`; README, "Licence").
+- `LinearSolver.QDLDL`: LDL^T (pip package `qdldl`, Apache-2.0) with AMD ordering and symbolic analysis
+  once per pattern; each iteration only refactorises the numbers. Not supernodal: slower than SuperLU
+  above ~10^4 unknowns.
+- `LinearSolver.CHOLESPY`: CHOLMOD's Cholesky through `cholespy` (a BSD-3 wrapper, but its wheel links
+  CHOLMOD's GPL Supernodal module statically, so also in requirements-cholmod.txt), analysed with every
+  factorisation; never the fastest here.
 - `LinearSolver.SUPERLU`: scipy's SuperLU with the MMD ordering of H^T + H, always available; the
-  fallback when an optional package is missing (one warning per process).
-- `LinearSolver.AUTO` (default): CHOLMOD; without cvxopt, QDLDL up to 10,000 unknowns and SUPERLU above.
+  fallback when an asked-for optional package is missing (one warning per process).
+- `LinearSolver.AUTO` (default): CHOLMOD when cvxopt is installed; otherwise, quietly, the faster
+  permissive solver for the size: QDLDL up to AUTO_QDLDL_MAX_UNKNOWNS unknowns, SUPERLU above.
 
 Build the solver once per mesh (`GlobalNewton(tets, free)`, or the cached `global_newton(...)`), then
 call `.solve(problem, x0)` for every step. `fast_newton_solve(problem, x0)` is the drop-in for
@@ -55,6 +60,8 @@ class LinearSolver(Enum):
     SUPERLU = "superlu"
 
 
+# Without cvxopt, AUTO's switch from QDLDL to SuperLU (benchmarks/results/newton_speed: QDLDL is the
+# faster on the 1,920-tet bar, SuperLU on the 30,720-tet one).
 AUTO_QDLDL_MAX_UNKNOWNS = 10_000
 
 
@@ -80,10 +87,7 @@ class DirectSolver:
     def _auto(cls, n_dofs):
         if cls._importable("cvxopt"):
             return LinearSolver.CHOLMOD
-        fallback = LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
-        warn_once("missing-cvxopt", "the sparse Cholesky solver 'cvxopt' is not installed (pip install -r "
-                  f"requirements.txt); using the slower {fallback.value!r} instead")
-        return fallback
+        return LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
 
     @staticmethod
     def _importable(module):
@@ -98,8 +102,9 @@ class DirectSolver:
         module = cls._MODULES.get(kind)
         if module is None or cls._importable(module):
             return kind
+        install = "requirements.txt" if module == "qdldl" else "requirements-cholmod.txt"
         warn_once(f"missing-{module}", f"the optional sparse solver {module!r} is not installed "
-                  f"(pip install {module}); using scipy's SuperLU instead")
+                  f"(pip install -r {install}); using scipy's SuperLU instead")
         return LinearSolver.SUPERLU
 
     def _numeric(self):
