@@ -143,12 +143,18 @@ class DirectSolver:
         return self._factor
 
     def back_solve(self, rhs: np.ndarray) -> np.ndarray:
-        """d (3F,) with H d = rhs for the last factorised H (CHOLMOD only)."""
-        from cvxopt import cholmod, matrix
+        """d (3F,) with H d = rhs for the last factorised H."""
+        if self.kind is LinearSolver.CHOLMOD:
+            from cvxopt import cholmod, matrix
 
-        out = matrix(rhs)
-        cholmod.solve(self._factor, out)
-        return np.array(out).ravel()
+            out = matrix(rhs)
+            cholmod.solve(self._factor, out)
+            return np.array(out).ravel()
+        if self.kind is LinearSolver.CHOLESPY:
+            out = np.zeros_like(rhs)
+            self._factor.solve(np.ascontiguousarray(rhs), out)
+            return out
+        return self._factor.solve(rhs)
 
     def _upper(self):
         """The current upper triangle as a scipy CSC matrix."""
@@ -176,15 +182,14 @@ class DirectSolver:
                 self._factor = qdldl.Solver(self._upper(), upper=True)
             else:
                 self._factor.update(self._upper(), upper=True)
-            return self._factor.solve(rhs)
-        if self.kind is LinearSolver.CHOLESPY:
+        elif self.kind is LinearSolver.CHOLESPY:
             from cholespy import CholeskySolverD, MatrixType
 
-            factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
-            out = np.zeros_like(rhs)
-            factor.solve(np.ascontiguousarray(rhs), out)
-            return out
-        return superlu_solve(p.matrix(), rhs)
+            self._factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
+        else:
+            self._factor = spla.splu(p.matrix().tocsc(), permc_spec="MMD_AT_PLUS_A")
+        self.factorised = True
+        return self.back_solve(rhs)
 
 
 def spd_solver(H: sp.spmatrix):
