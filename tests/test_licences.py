@@ -77,9 +77,9 @@ def test_the_conflict_rule(licence, how, conflict):
 
 
 def test_no_package_or_bundled_component_of_the_default_set_conflicts_with_mit():
-    packages = [row for row in _table("Packages") if row[0] == "default"]
+    packages = [row for row in _table("Packages") + _table("Installed with them") if row[0] == "default"]
     components = [row for row in _table("Native code bundled in the wheels") if row[0] == "default"]
-    assert packages and components
+    assert packages and components and "rich" in [row[1] for row in packages]     # taichi's requirement
     assert [row[1] for row in packages if licences.conflicts(row[3])] == []
     assert [row[2] for row in components if licences.conflicts(row[3], row[4])] == []
     lgpl = {row[2] for row in components if "LGPL" in row[3]}
@@ -88,9 +88,10 @@ def test_no_package_or_bundled_component_of_the_default_set_conflicts_with_mit()
 
 
 def test_the_optional_cholmod_set_is_what_carries_gpl_code():
-    gpl = {row[1] for row in _table("Packages") if licences.conflicts(row[3])}
+    rows = _table("Packages") + _table("Installed with them")
+    gpl = {row[1] for row in rows if licences.conflicts(row[3])}
     assert gpl == {"cvxopt", "cholespy"}
-    assert all(row[0] == "cholmod" for row in _table("Packages") if row[1] in gpl)
+    assert all(row[0] == "cholmod" for row in rows if row[1] in gpl)
 
 
 def test_citation_cff_has_the_required_keys_and_cites_vbd():
@@ -111,3 +112,14 @@ def test_licence_files_name_the_licences():
         assert re.search(r'^license = "MIT"$', fh.read(), flags=re.MULTILINE)
     with open(os.path.join(ROOT, "lecture_notes", "README.md")) as fh:
         assert "CC BY 4.0" in fh.read()
+
+
+def test_pyproject_extras_declare_the_optional_sets():
+    tomllib = pytest.importorskip("tomllib", reason="tomllib is in the standard library from Python 3.11")
+    with open(os.path.join(ROOT, "pyproject.toml"), "rb") as fh:
+        project = tomllib.load(fh)["project"]
+    for group in ("mesh", "cholmod"):
+        declared = {licences.canonical(re.split(r"[<>=!~ ;\[]", d, maxsplit=1)[0])
+                    for d in project["optional-dependencies"][group]}
+        assert declared == {package for g, package, _, _ in licences.read_pins() if g == group}, group
+    assert "cvxopt" not in " ".join(project["dependencies"])

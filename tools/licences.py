@@ -1,14 +1,14 @@
-"""Write LICENSES-dependencies.md: every package pinned in the requirements files, with its version and
-licence read from the installed packages' metadata, and the native libraries and programs their wheels
-bundle. Standard library only.
+"""Write LICENSES-dependencies.md: every package pinned in the requirements files and every package they
+pull in, with version and licence read from the installed packages' metadata, and the native libraries
+and programs their wheels bundle. Standard library only.
 
     python tools/licences.py                      # from the packages installed in this environment
     python tools/licences.py --path WHEEL ...     # also read packages not installed, from their wheels
     python tools/licences.py --check              # change nothing; exit 1 if the file is out of date
 
-A package's licence is, in this order: its `License-Expression` (PEP 639), its `License` field when that
-is a short licence name, its "License ::" classifiers, or, where these are missing, long licence texts
-or too vague ("BSD License"), an entry of OVERRIDES with the reason. The MIT code of this project may
+A package's licence is its entry of OVERRIDES (with the reason) where its metadata is missing, a whole
+licence text, too vague ("BSD License") or wrong; otherwise, in this order, its `License-Expression`
+(PEP 639), its `License` field when that is a licence name or expression, or its "License ::" classifiers. The MIT code of this project may
 depend on permissive packages only (`conflicts`): GPL and AGPL code stay out of the default set
 (requirements.txt); LGPL code and GPL code under the GCC runtime exception only as shared libraries that
 the Python extensions load at run time; a GPL program only as a separate executable.
@@ -27,13 +27,22 @@ REQUIREMENT_SETS = {"requirements.txt": "default", "requirements-mesh.txt": "mes
                     "requirements-cholmod.txt": "cholmod"}
 
 # Short `License` fields -> SPDX identifiers.
-SPDX_NAMES = {"apache 2.0": "Apache-2.0", "the mit license (mit)": "MIT", "mit": "MIT"}
+SPDX_NAMES = {"apache 2.0": "Apache-2.0"}
+SPDX_EXPRESSION = re.compile(r"[A-Za-z0-9.+-]+( (AND|OR|WITH) [A-Za-z0-9.+-]+)*")
 CLASSIFIERS = {"License :: OSI Approved :: MIT License": "MIT",
                "License :: OSI Approved :: Apache Software License": "Apache-2.0",
                "License :: OSI Approved :: Mozilla Public License 2.0 (MPL 2.0)": "MPL-2.0"}
 
 # package -> (licence, why the metadata is not used as it is)
 OVERRIDES = {
+    "colorama": ("BSD-3-Clause", "no `License` field; its classifier only says 'BSD License'; LICENSE.txt is "
+                 "BSD-3-Clause"),
+    "contourpy": ("BSD-3-Clause", "`License` holds the whole text, titled 'BSD 3-Clause License'; its "
+                  "classifier only says 'BSD License'"),
+    "cycler": ("BSD-3-Clause", "`License` holds the copyright line; its classifier only says 'BSD License'; "
+               "LICENSE is BSD-3-Clause"),
+    "kiwisolver": ("BSD-3-Clause", "`License` holds the whole text, the Modified BSD License; its classifier "
+                   "only says 'BSD License'"),
     "numpy": ("BSD-3-Clause", "`License` holds the whole licence text; its classifier only says 'BSD "
               "License'; the text is BSD-3-Clause"),
     "scipy": ("BSD-3-Clause", "`License` holds the whole licence text; its classifier only says 'BSD "
@@ -117,8 +126,10 @@ def metadata_licence(dist) -> tuple:
     if meta.get("License-Expression"):
         return meta["License-Expression"].strip(), "License-Expression"
     field = (meta.get("License") or "").strip()
-    if field and "\n" not in field and len(field) <= 40:
-        return SPDX_NAMES.get(field.lower(), field), "License"
+    if field.lower() in SPDX_NAMES:
+        return SPDX_NAMES[field.lower()], "License"
+    if SPDX_EXPRESSION.fullmatch(field):
+        return field, "License"
     classifiers = [CLASSIFIERS.get(c) for c in meta.get_all("Classifier") or [] if c.startswith("License ::")]
     if classifiers and all(classifiers):
         return " AND ".join(sorted(set(classifiers))), "classifier"
@@ -165,30 +176,74 @@ def conflicts(licence: str, how: str = "package") -> bool:
                    for alternative in licence.split(" OR "))
 
 
+def licence_of(package: str, dist) -> tuple:
+    """(licence, source) of a distribution: an override, else its metadata. Raises SystemExit when the
+    metadata is ambiguous and there is no override."""
+    if package in OVERRIDES:
+        return OVERRIDES[package][0], "override"
+    licence, source = metadata_licence(dist)
+    if licence is None:
+        raise SystemExit(f"{package}: {source}; add it to OVERRIDES in tools/licences.py with the reason")
+    return licence, source
+
+
+def requirements_of(dist) -> list:
+    """Canonical names of what `dist` requires outside its extras (markers for other Pythons or systems
+    are not evaluated: such a requirement counts when it is installed)."""
+    out = []
+    for line in dist.requires or []:
+        name, _, marker = line.partition(";")
+        if "extra ==" not in marker:
+            out.append(canonical(re.match(r"[A-Za-z0-9._-]+", name.strip()).group(0)))
+    return out
+
+
+def pulled_in(roots: list, dists: dict, known: set) -> dict:
+    """package -> the packages that require it: every installed package that `roots` require, directly or
+    through each other, and that is not in `known`."""
+    found, queue = {}, list(roots)
+    while queue:
+        parent = queue.pop()
+        for child in requirements_of(dists[parent]):
+            if child in dists and child not in known and child not in roots:
+                if child not in found:
+                    queue.append(child)
+                found.setdefault(child, set()).add(parent)
+    return found
+
+
 def render(paths: list = ()) -> str:
     """The text of LICENSES-dependencies.md. Raises SystemExit naming a package whose metadata cannot be
     read or is ambiguous without an override, and a bundled library without a known licence."""
     pins = read_pins()
     dists = distributions(list(paths))
-    rows, components = [], []
-    for name in sorted({(g, n) for g, n, _, _ in pins}, key=lambda k: (list(REQUIREMENT_SETS.values()).index(k[0]), k[1])):
-        group, package = name
-        versions = "; ".join(f"{v} ({m})" if m else v for g, n, v, m in pins if (g, n) == name)
-        dist = dists.get(package)
-        if dist is None:
-            raise SystemExit(f"{package} is not installed: install the {group} set, or pass its wheel with --path")
-        licence, source = metadata_licence(dist)
-        if package in OVERRIDES:
-            licence, source = OVERRIDES[package][0], "override"
-        if licence is None:
-            raise SystemExit(f"{package}: {source}; add it to OVERRIDES in tools/licences.py with the reason")
-        pinned = [v for g, n, v, m in pins if (g, n) == name]
-        read = dist.version if dist.version in pinned else f"{dist.version} (not a pinned version)"
-        rows.append(f"| {group} | {package} | {versions} | {licence} | {source} | {read} |")
-        for component, component_licence, how in bundled(dist):
-            if component_licence is None:
-                raise SystemExit(f"{package} bundles {component}: add its licence to LIBRARIES in tools/licences.py")
-            components.append(f"| {group} | {package} | {component} | {component_licence} | {how} |")
+    rows, indirect, components = [], [], []
+    known = set()
+    for group in REQUIREMENT_SETS.values():
+        pinned = sorted({n for g, n, _, _ in pins if g == group})
+        missing = [n for n in pinned if n not in dists]
+        if missing:
+            raise SystemExit(f"{', '.join(missing)} not installed: install the {group} set, or pass its wheels "
+                             "with --path")
+        for package in pinned:
+            dist = dists[package]
+            versions = [v for g, n, v, m in pins if (g, n) == (group, package)]
+            listed = "; ".join(f"{v} ({m})" if m else v for g, n, v, m in pins if (g, n) == (group, package))
+            read = dist.version if dist.version in versions else f"{dist.version} (not a pinned version)"
+            rows.append(f"| {group} | {package} | {listed} | " + " | ".join(licence_of(package, dist)) + f" | {read} |")
+        known |= set(pinned)
+        extra = pulled_in(pinned, dists, known)
+        for package in sorted(extra):
+            dist = dists[package]
+            indirect.append(f"| {group} | {package} | {dist.version} | " + " | ".join(licence_of(package, dist))
+                            + f" | {', '.join(sorted(extra[package]))} |")
+        known |= set(extra)
+        for package in pinned + sorted(extra):
+            for component, component_licence, how in bundled(dists[package]):
+                if component_licence is None:
+                    raise SystemExit(f"{package} bundles {component}: add its licence to LIBRARIES in "
+                                     "tools/licences.py")
+                components.append(f"| {group} | {package} | {component} | {component_licence} | {how} |")
     reasons = [f"| {package} | {licence} | {why} |" for package, (licence, why) in sorted(OVERRIDES.items())]
     return "\n".join([
         "# Licences of the dependencies",
@@ -203,6 +258,15 @@ def render(paths: list = ()) -> str:
         "| set | package | pinned version | licence | read from | metadata of version |",
         "|---|---|---|---|---|---|",
         *rows,
+        "",
+        "## Installed with them",
+        "",
+        "What the pinned packages require, as installed where this file was generated (a set lists what it",
+        "adds to the sets before it).",
+        "",
+        "| set | package | version | licence | read from | required by |",
+        "|---|---|---|---|---|---|",
+        *indirect,
         "",
         "## Native code bundled in the wheels",
         "",
