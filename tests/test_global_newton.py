@@ -136,8 +136,7 @@ def test_exact_hessian_near_the_solution_converges_in_fewer_iterations_than_proj
     fast = newton.solve(p, x0, tolerance=1e-12)
     assert fast.converged and fast.iterations < ref.iterations
     assert np.abs(fast.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
-    if newton.direct.kind is LinearSolver.CHOLMOD:
-        assert len(calls) < fast.iterations            # chord steps reuse the last factorisation
+    assert len(calls) < fast.iterations                # chord steps reuse the last factorisation
     gradients = [r.max_gradient for r in fast.history]
     assert gradients[2] < 1e-3 * gradients[1]          # quadratic, not linear, once close
 
@@ -165,9 +164,9 @@ def test_an_indefinite_exact_hessian_quietly_takes_the_projected_one():
 def test_every_linear_solver_gives_the_same_step(kind):
     p = _bar_with_ground()
     if kind is LinearSolver.CHOLMOD:
-        pytest.importorskip("cvxopt", reason="sparse Cholesky solver cvxopt is not installed")
+        pytest.importorskip("cvxopt", reason="the optional CHOLMOD solver (requirements-cholmod.txt) is not installed")
     if kind is LinearSolver.CHOLESPY:
-        pytest.importorskip("cholespy", reason="optional sparse solver cholespy is not installed")
+        pytest.importorskip("cholespy", reason="the optional cholespy (requirements-cholmod.txt) is not installed")
     if kind is LinearSolver.QDLDL:
         pytest.importorskip("qdldl", reason="optional sparse solver qdldl is not installed")
     x0 = p.y_with_constraints()
@@ -188,20 +187,41 @@ def test_solver_is_cached_per_connectivity_and_free_mask():
         global_newton(p.tets, free).solve(p, p.y)
 
 
-@pytest.mark.parametrize("module, asked, used, message", [
-    ("qdldl", LinearSolver.QDLDL, LinearSolver.SUPERLU, "qdldl.*SuperLU"),
-    ("cvxopt", LinearSolver.AUTO, LinearSolver.QDLDL, "'cvxopt' is not installed.*'qdldl'"),
+@pytest.mark.parametrize("module, asked, message", [
+    ("qdldl", LinearSolver.QDLDL, "'qdldl' is not installed.*requirements.txt.*SuperLU"),
+    ("cvxopt", LinearSolver.CHOLMOD, "'cvxopt' is not installed.*requirements-cholmod.txt.*SuperLU"),
 ])
-def test_a_missing_sparse_solver_falls_back_with_one_warning(monkeypatch, module, asked, used, message):
+def test_a_missing_sparse_solver_asked_for_falls_back_with_one_warning(monkeypatch, module, asked, message):
     p = _bar_with_ground()
     pattern = HessianPattern(p.tets, p.free)
     monkeypatch.setitem(sys.modules, module, None)      # makes `import <module>` fail
     monkeypatch.setattr("solver.newton.direct._WARNED", set())
     with pytest.warns(UserWarning, match=message):
-        assert DirectSolver(pattern, asked).kind is used
+        assert DirectSolver(pattern, asked).kind is LinearSolver.SUPERLU
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert DirectSolver(pattern, asked).kind is used
+        assert DirectSolver(pattern, asked).kind is LinearSolver.SUPERLU
+
+
+@pytest.mark.parametrize("limit_offset, used", [(0, LinearSolver.QDLDL), (-1, LinearSolver.SUPERLU)])
+def test_auto_without_cvxopt_quietly_takes_qdldl_up_to_the_limit_and_superlu_above(monkeypatch, limit_offset, used):
+    """cvxopt (GPL) is optional: its absence is the normal case, so AUTO does not warn."""
+    p = _bar_with_ground()
+    pattern = HessianPattern(p.tets, p.free)
+    monkeypatch.setitem(sys.modules, "cvxopt", None)
+    monkeypatch.setattr("solver.newton.direct._WARNED", set())
+    monkeypatch.setattr("solver.newton.direct.AUTO_QDLDL_MAX_UNKNOWNS", pattern.n_dofs + limit_offset)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert DirectSolver(pattern, LinearSolver.AUTO).kind is used
+
+
+def test_auto_with_cvxopt_takes_cholmod():
+    pytest.importorskip("cvxopt", reason="the optional CHOLMOD solver (requirements-cholmod.txt) is not installed")
+    p = _bar_with_ground()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert DirectSolver(HessianPattern(p.tets, p.free), LinearSolver.AUTO).kind is LinearSolver.CHOLMOD
 
 
 @pytest.mark.parametrize("case", ["cholmod", "no cvxopt", "indefinite"])
@@ -215,6 +235,8 @@ def test_spd_solver_solves_with_cholmod_or_superlu(monkeypatch, case):
     if case == "indefinite":
         H = H - 3.0 * sp.identity(30)
         assert np.linalg.eigvalsh(H.toarray()).min() < 0
+    if case == "cholmod":
+        pytest.importorskip("cvxopt", reason="the optional CHOLMOD solver (requirements-cholmod.txt) is not installed")
     if case == "no cvxopt":
         monkeypatch.setitem(sys.modules, "cvxopt", None)
     b = rng.standard_normal(30)

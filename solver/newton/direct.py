@@ -5,15 +5,20 @@ Same loop, line search and convergence test as the numpy oracle `solver.newton.n
 and the projected Hessian come from the kernels in `solver.hessian`, into a CSR pattern built once
 per mesh and free mask, and the linear system is solved by a sparse factorisation of that pattern:
 
-- `LinearSolver.CHOLMOD`: CHOLMOD's supernodal Cholesky through `cvxopt` (pip package, GPL-3, its
-  own BLAS), with the fill-reducing ordering and symbolic analysis once per pattern; each iteration only
-  refactorises the numbers. Fastest measured at every size here (benchmarks/newton_speed.py).
-- `LinearSolver.QDLDL`: LDL^T (pip package `qdldl`) with AMD ordering and symbolic analysis once per
-  pattern; each iteration only refactorises the numbers. Not supernodal: slow above ~10^4 unknowns.
-- `LinearSolver.CHOLESPY`: CHOLMOD's Cholesky through `cholespy`, analysed with every factorisation.
+- `LinearSolver.CHOLMOD`: CHOLMOD's supernodal Cholesky through `cvxopt`, with the fill-reducing
+  ordering and symbolic analysis once per pattern; each iteration only refactorises the numbers. Fastest
+  measured at every size here (benchmarks/newton_speed.py), but GPL-3, so an optional extra
+  (`pip install -r requirements-cholmod.txt`; README, "Licence").
+- `LinearSolver.QDLDL`: LDL^T (pip package `qdldl`, Apache-2.0) with AMD ordering and symbolic analysis
+  once per pattern; each iteration only refactorises the numbers. Not supernodal: slower than SuperLU
+  above ~10^4 unknowns.
+- `LinearSolver.CHOLESPY`: CHOLMOD's Cholesky through `cholespy` (a BSD-3 wrapper, but its wheel links
+  CHOLMOD's GPL Supernodal module statically, so also in requirements-cholmod.txt), analysed with every
+  factorisation; never the fastest here.
 - `LinearSolver.SUPERLU`: scipy's SuperLU with the MMD ordering of H^T + H, always available; the
-  fallback when an optional package is missing (one warning per process).
-- `LinearSolver.AUTO` (default): CHOLMOD; without cvxopt, QDLDL up to 10,000 unknowns and SUPERLU above.
+  fallback when an asked-for optional package is missing (one warning per process).
+- `LinearSolver.AUTO` (default): CHOLMOD when cvxopt is installed; otherwise, quietly, the faster
+  permissive solver for the size: QDLDL up to AUTO_QDLDL_MAX_UNKNOWNS unknowns, SUPERLU above.
 
 Build the solver once per mesh (`GlobalNewton(tets, free)`, or the cached `global_newton(...)`), then
 call `.solve(problem, x0)` for every step. `fast_newton_solve(problem, x0)` is the drop-in for
@@ -54,6 +59,8 @@ class LinearSolver(Enum):
     SUPERLU = "superlu"
 
 
+# Without cvxopt, AUTO's switch from QDLDL to SuperLU (benchmarks/results/newton_speed: QDLDL is the
+# faster on the 1,920-tet bar, SuperLU on the 30,720-tet one).
 AUTO_QDLDL_MAX_UNKNOWNS = 10_000
 
 
@@ -79,10 +86,7 @@ class DirectSolver:
     def _auto(cls, n_dofs):
         if cls._importable("cvxopt"):
             return LinearSolver.CHOLMOD
-        fallback = LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
-        warn_once("missing-cvxopt", "the sparse Cholesky solver 'cvxopt' is not installed (pip install -r "
-                  f"requirements.txt); using the slower {fallback.value!r} instead")
-        return fallback
+        return LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
 
     @staticmethod
     def _importable(module):
@@ -97,8 +101,9 @@ class DirectSolver:
         module = cls._MODULES.get(kind)
         if module is None or cls._importable(module):
             return kind
+        install = "requirements.txt" if module == "qdldl" else "requirements-cholmod.txt"
         warn_once(f"missing-{module}", f"the optional sparse solver {module!r} is not installed "
-                  f"(pip install {module}); using scipy's SuperLU instead")
+                  f"(pip install -r {install}); using scipy's SuperLU instead")
         return LinearSolver.SUPERLU
 
     def _numeric(self):
@@ -137,12 +142,18 @@ class DirectSolver:
         return self._factor
 
     def back_solve(self, rhs: np.ndarray) -> np.ndarray:
-        """d (3F,) with H d = rhs for the last factorised H (CHOLMOD only)."""
-        from cvxopt import cholmod, matrix
+        """d (3F,) with H d = rhs for the last factorised H."""
+        if self.kind is LinearSolver.CHOLMOD:
+            from cvxopt import cholmod, matrix
 
-        out = matrix(rhs)
-        cholmod.solve(self._factor, out)
-        return np.array(out).ravel()
+            out = matrix(rhs)
+            cholmod.solve(self._factor, out)
+            return np.array(out).ravel()
+        if self.kind is LinearSolver.CHOLESPY:
+            out = np.zeros_like(rhs)
+            self._factor.solve(np.ascontiguousarray(rhs), out)
+            return out
+        return self._factor.solve(rhs)
 
     def _upper(self):
         """The current upper triangle as a scipy CSC matrix."""
@@ -170,15 +181,14 @@ class DirectSolver:
                 self._factor = qdldl.Solver(self._upper(), upper=True)
             else:
                 self._factor.update(self._upper(), upper=True)
-            return self._factor.solve(rhs)
-        if self.kind is LinearSolver.CHOLESPY:
+        elif self.kind is LinearSolver.CHOLESPY:
             from cholespy import CholeskySolverD, MatrixType
 
-            factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
-            out = np.zeros_like(rhs)
-            factor.solve(np.ascontiguousarray(rhs), out)
-            return out
-        return superlu_solve(p.matrix(), rhs)
+            self._factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
+        else:
+            self._factor = spla.splu(p.matrix().tocsc(), permc_spec="MMD_AT_PLUS_A")
+        self.factorised = True
+        return self.back_solve(rhs)
 
 
 def spd_solver(H: sp.spmatrix):
