@@ -5,18 +5,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import taichi as ti
+from solver._ti import ti
 
 import solver
 from solver.mesh.topology import grad_rows, rest_geometry
 from solver.physics import ground as ground_terms
 from solver.physics import inertia as inertia_terms
 from solver.physics.material import (cofactor, d2psi_dF2_entry, d2psi_dF2_np, deformation_gradient,
-
-pytestmark = pytest.mark.backend   # compiles Taichi kernels: re-run on CUDA
                                      deformation_gradient_np, dpsi_dF, psi, psi_np, tet_gradients_np,
                                      tet_hessian_blocks_np, tet_hessian_block, vertex_force_hessian,
                                      vertex_gradients)
+
+pytestmark = pytest.mark.backend   # compiles Taichi kernels: re-run on CUDA
 
 SOLVER = Path(solver.__file__).resolve().parent
 rng = np.random.default_rng(7)
