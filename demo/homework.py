@@ -126,8 +126,8 @@ TASKS = (
                                "around it",
               "newton_step": "vertex i's 3x3 Newton step dx = H_i^-1 f_i, zero for a singular H_i"},
         depends=("force_hessian", "coloring"),
-        details="In `force_hessian` (solver/vbd/vertex_solve.py), add the inertia term `m_i/h^2 (y_i - x_i)` (and "
-                "`m_i/h^2 I`) and loop over the tets around the vertex with `tet_kinematics` and "
+        details="In `force_hessian` (solver/vbd/vertex_solve.py), add the inertia term (its force and block are "
+                "`inertia_gradient` and `inertia_block` of solver/physics/inertia.py, with m_i/h^2) and loop over the tets around the vertex with `tet_kinematics` and "
                 "`vertex_force_hessian`. In `newton_step`, solve the 3x3 system for the step `dx` "
                 "(chapter 3, \"The 3x3 Newton solve\", and chapter 4 for why a colour runs in parallel).",
         notes={"force_hessian": ["Define f and H (inertia + elasticity) and H_el (the elastic part alone; "

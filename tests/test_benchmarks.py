@@ -283,6 +283,7 @@ def test_the_readme_says_what_each_benchmark_writes(name):
 
 
 @pytest.mark.slow
+@pytest.mark.backend
 def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == \

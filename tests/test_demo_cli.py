@@ -134,6 +134,7 @@ def test_arch_gpu_without_a_gpu_warns_once_in_one_line(tmp_path):
     assert rendered.stderr == "warning: no CUDA GPU is available here; running on the CPU instead\n"
 
 
+@pytest.mark.backend
 def test_the_default_render_run_twice_keeps_the_first(tmp_path, monkeypatch, capsys):
     """Without --out a second run writes out/SCENE_2 and leaves out/SCENE as it was; with --out it refuses."""
     monkeypatch.chdir(tmp_path)
@@ -147,6 +148,7 @@ def test_the_default_render_run_twice_keeps_the_first(tmp_path, monkeypatch, cap
     one_line_error(capsys, argv + ["--out", "out/twist"], "--overwrite")
 
 
+@pytest.mark.backend
 def test_overrides_reach_every_panel_and_its_label():
     from demo import scenes
     from demo.runner import SceneRunner
