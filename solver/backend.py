@@ -33,6 +33,11 @@ def _warn(message: str) -> None:
     warnings.warn_explicit(message, UserWarning, filename="solver", lineno=0)
 
 
+def running_on_cpu() -> bool:
+    """Whether Taichi runs on the CPU backend (False before `ensure_taichi` and on CUDA)."""
+    return _ti.initialised_arch() in (ti.x64, ti.arm64)
+
+
 def ensure_taichi(arch=None) -> None:
     """Initialise Taichi once; later calls keep whatever backend is already running, with one
     warning when they ask for another one.
@@ -44,7 +49,7 @@ def ensure_taichi(arch=None) -> None:
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
     running = _ti.initialised_arch()
     if running is not None and arch is not None:
-        on_cpu = running in (ti.x64, ti.arm64)
+        on_cpu = running_on_cpu()
         if (arch == "gpu") == on_cpu and arch not in _warned_mismatch:
             _warned_mismatch.add(arch)
             name = "the CPU" if on_cpu else "the GPU"

@@ -183,3 +183,25 @@ def test_asking_for_another_backend_warns_once():
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.stdout.strip().splitlines()[-1] == "1", out.stderr
+
+
+def test_the_serial_sweep_of_small_meshes_gives_the_same_iterate():
+    """Small meshes on the CPU run each colour on one thread (no barrier per colour); the vertices of a
+    colour are independent, so one iteration gives bit for bit what the parallel sweep gives."""
+    from solver.vbd import vertex_solve
+
+    sim = cantilever(E=1e6, cells=(8, 2, 2), iterations=1)
+    assert sim._serial_sweep == vertex_solve.serial_sweep(sim.mesh.n_tets, solver.backend.running_on_cpu())
+    sim.step()
+    sim.begin_step()
+    saved = sim.state.to_numpy()
+    results = []
+    for serial in (False, True):
+        sim.state.from_numpy(saved)
+        a = sim.arrays
+        for _ in range(3):
+            vertex_solve.vbd_iteration(a.state, a.mass, a.color_order, a.offsets, a.others, a.adj_f,
+                                       a.color_starts, a.params, sim.n_colors, sim.dtype, serial)
+        results.append(sim.positions)
+    assert not np.allclose(results[0], sim.mesh.vertices)          # the iterations moved the bar
+    np.testing.assert_array_equal(results[0], results[1])

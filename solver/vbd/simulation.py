@@ -24,7 +24,7 @@ import numpy as np
 
 from . import energy as energy_kernels
 from . import global_methods, implicit_euler, orientation, translation, vertex_solve
-from ..backend import as_precision, ensure_taichi
+from ..backend import as_precision, ensure_taichi, running_on_cpu
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
 from ..errors import ConfigError, VBDError, enum_value
 from .implicit_euler import InitialGuess
@@ -141,6 +141,7 @@ class Simulation(SimulationState):
 
         ensure_taichi(arch)
         self.arch = arch
+        self._serial_sweep = vertex_solve.serial_sweep(mesh.n_tets, running_on_cpu())
         require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.newton_step)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
         self.topology: Topology = build_topology(mesh.vertices, mesh.tets,
@@ -213,7 +214,7 @@ class Simulation(SimulationState):
             if s.chebyshev_rho is not None:
                 self._omega = chebyshev_omega(self._iteration, s.chebyshev_rho, self._omega)
             vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
-                                       self._params, self.n_colors, self.dtype)
+                                       self._params, self.n_colors, self.dtype, self._serial_sweep)
             if s.chebyshev_rho is not None:
                 chebyshev_step(self.state, color_order, self._omega, self.dtype)
             ran += 1

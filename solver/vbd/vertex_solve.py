@@ -29,6 +29,17 @@ assert ADJ_FLOATS == VOLUME + 1
 J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a tenth of its rest volume
 
 
+# Below this many tets a CPU sweep runs each colour on one thread: the barrier that ends a parallel colour
+# costs about 20 us on the CPU backend, more than the colour's work on a classroom-size mesh (3,840 tets,
+# 8 colours: 0.20 ms per iteration on one thread against 0.28 ms on two; benchmarks/throughput.py).
+SERIAL_SWEEP_TETS = 6000
+
+
+def serial_sweep(n_tets: int, on_cpu: bool) -> bool:
+    """Whether `vbd_iteration` should run each colour serially (small meshes on the CPU only)."""
+    return on_cpu and n_tets < SERIAL_SWEEP_TETS
+
+
 @ti.func
 def tet_kinematics(state: ti.template(), x_i, j, a):
     """F m_i, J = det F and w = dJ/dx_i of one tet around vertex i at x_i: j (3,) its other vertices
@@ -134,12 +145,15 @@ def solve_vertex(state: ti.template(), mass: ti.template(), color_order: ti.temp
 def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                   offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
                   color_starts: ti.types.ndarray(), params: ti.types.ndarray(), n_colors: ti.template(),
-                  dtype: ti.template()):
+                  dtype: ti.template(), serial: ti.template()):
     """One VBD iteration: each colour in turn, all vertices of a colour in parallel.
 
     color_starts (n_colors + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
+    serial: run each colour on one CPU thread (`serial_sweep`); the vertices of a colour are independent,
+    so the result is the same, without a barrier per colour.
     """
     for c in ti.static(range(n_colors)):
+        ti.loop_config(serialize=serial)
         for k in range(color_starts[c], color_starts[c + 1]):
             solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
 
