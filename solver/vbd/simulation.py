@@ -29,6 +29,8 @@ from . import layout as L
 from . import translation, vertex_solve
 from ..backend import as_precision, ensure_taichi
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
+from .contact_state import ContactStage, as_contact   # contact hook (issue 17)
+from ..mesh.bodies import body_labels
 from ..mesh.coloring import Coloring, VertexOrder, color_vertices
 from ..physics.ground import Ground
 from ..errors import ConfigError, VBDError
@@ -185,7 +187,7 @@ class Simulation:
                  kinematic_motion: Optional[Callable] = None, precision="float64", arch: Optional[str] = None,
                  coloring_order: VertexOrder = VertexOrder.NATURAL,
                  translation_correction: bool = True, keep_orientation: bool = False,
-                 method=Method.VBD, record_history: bool = False):
+                 method=Method.VBD, record_history: bool = False, contact=None):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a solver.TetMesh, got {type(mesh).__name__}; "
                               "use solver.load_mesh or solver.box_mesh")
@@ -234,6 +236,8 @@ class Simulation:
         self.history: list[IterationRecord] = []
         self.last_iterations = 0
         self.reset()
+        self._contact_stage = None     # contact hook (issue 17)
+        self.contact = contact
         self._constructed = True
 
     def _choose_method(self, method, material, dt):
@@ -242,8 +246,16 @@ class Simulation:
         if method is Method.AUTO:
             method, self.method_reason = choose(wave_cells(self.mesh, material, float(dt)))
         self._refuse_non_potential(method, self._damping, self._ground)
+        self._refuse_contact(method, getattr(self, "_contact", None))
         self.method = method
         self._two_level = None
+
+    @staticmethod
+    def _refuse_contact(method, contact):
+        """Contact hook (issue 17): only VBD and the numpy Newton reference have the contact term yet."""
+        if method is not Method.VBD and contact is not None:
+            raise ConfigError(f"method={method.value!r} has no contact term yet; use method='vbd' with contact "
+                              "(sim.newton_reference() solves the same step with contact)")
 
     @staticmethod
     def _refuse_non_potential(method, damping, ground):
@@ -386,6 +398,36 @@ class Simulation:
             self._refuse_non_potential(self.method, self._damping, value)
         self._ground = value
         self._upload_params()
+
+    @property
+    def contact(self):
+        """Contact between bodies and within one (a `Contact`), or None (issue 17)."""
+        return self._contact
+
+    @contact.setter
+    def contact(self, value):
+        value = as_contact(value)
+        if hasattr(self, "method"):
+            self._refuse_contact(self.method, value)
+        stage = None if value is None else ContactStage(self.mesh, self.free_mask, value, self.dtype)
+        if stage is not None:
+            stage.check_apart(self.state, self.positions)
+        self._contact, self._contact_stage = value, stage
+
+    @property
+    def bodies(self) -> np.ndarray:
+        """(N,) int32 body of each vertex, bodies numbered by their smallest vertex."""
+        if self._contact_stage is not None:
+            return self._contact_stage.bodies.copy()
+        return body_labels(self.mesh.tets, self.mesh.n_vertices)
+
+    def contact_count(self) -> int:
+        """Contact pairs closer than the radius at the current positions (0 without contact)."""
+        return 0 if self._contact_stage is None else self._contact_stage.count(self.state)
+
+    def min_separation(self) -> float:
+        """Least contact pair distance in m under query_radius at the current positions, else inf."""
+        return float("inf") if self._contact_stage is None else self._contact_stage.min_separation(self.state)
 
     @property
     def chebyshev_rho(self) -> Optional[float]:
@@ -544,7 +586,10 @@ class Simulation:
 
     def set_positions(self, x: np.ndarray) -> None:
         """Overwrite the positions (N, 3) in metres, e.g. to start from a deformed state."""
-        self._set_rows({L.X: self._checked_state(x, "positions")})
+        x = self._checked_state(x, "positions")
+        self._set_rows({L.X: x})
+        if self._contact_stage is not None:      # contact hook (issue 17)
+            self._contact_stage.check_apart(self.state, x)
 
     def set_velocities(self, v: np.ndarray, previous: Optional[np.ndarray] = None) -> None:
         """Overwrite the velocities v_n (N, 3) in m/s. previous: the velocities v_{n-1} (N, 3) of the
@@ -642,6 +687,8 @@ class Simulation:
                     break
             else:
                 implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
+        if self._contact_stage is not None:      # contact hook (issue 17): detect at x_n, clamp the guess
+            self._contact_stage.begin_step(self.state, self._adjacency[0])
         self._in_step = True
         self._iteration = 0
         self._omega = 1.0
@@ -664,12 +711,16 @@ class Simulation:
         ran = 0
         for _ in range(_count(k, "k")):
             self._iteration += 1
-            if self._rho is not None:
-                self._omega = chebyshev_omega(self._iteration, self._rho, self._omega)
-            vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
-                                       self._params, self.n_colors, self.dtype)
-            if self._rho is not None:
-                chebyshev_step(self.state, color_order, self._omega, self.dtype)
+            if self._contact_stage is not None:  # contact hook (issue 17): Chebyshev stays off with contact
+                self._contact_stage.iterate(self.state, self._mass, self._adjacency, self._params, self.n_colors,
+                                            self.dtype)
+            else:
+                if self._rho is not None:
+                    self._omega = chebyshev_omega(self._iteration, self._rho, self._omega)
+                vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f,
+                                           color_starts, self._params, self.n_colors, self.dtype)
+                if self._rho is not None:
+                    chebyshev_step(self.state, color_order, self._omega, self.dtype)
             ran += 1
             if self.record_history:
                 self.history.append(IterationRecord(self._iteration, self.energy(), self.max_residual()))
@@ -736,13 +787,20 @@ class Simulation:
 
         Damping and friction are not potentials and are not included.
         """
-        return float(energy_kernels.incremental_potential(self.state, self._mass, self._free, self._tets,
-                                                          self._Dm_inv, self._volume, self._params))
+        G = float(energy_kernels.incremental_potential(self.state, self._mass, self._free, self._tets,
+                                                       self._Dm_inv, self._volume, self._params))
+        if self._contact_stage is not None:      # contact hook (issue 17): + E_c
+            G += self._contact_stage.energy(self.state, self.dtype)
+        return G
 
     def _local_systems(self) -> float:
         color_order, offsets, others, adj_f, _ = self._adjacency
-        return float(vertex_solve.local_systems(self.state, self._mass, color_order, offsets, others, adj_f,
-                                                self._params, self._f, self._H, self.dtype))
+        largest = float(vertex_solve.local_systems(self.state, self._mass, color_order, offsets, others, adj_f,
+                                                   self._params, self._f, self._H, self.dtype))
+        if self._contact_stage is not None:      # contact hook (issue 17): + the pairs' terms
+            largest = self._contact_stage.add_local_systems(self.state, color_order, self._params, self._f,
+                                                            self._H, self.dtype)
+        return largest
 
     def residual(self) -> np.ndarray:
         """(N, 3) float64 per-vertex force residual f_i = -dG/dx_i (0 at fixed/kinematic vertices)."""
@@ -783,20 +841,36 @@ class Simulation:
         return StepProblem(tets=self.mesh.tets, grad_rows=self._grad_rows, volumes=self._rest_vol,
                            masses=self.masses, y=self.inertial_target(), free=self.free_mask.copy(),
                            constrained_positions=targets, h=self._dt, mu=self._material.mu,
-                           lam=self._material.lam, ground=self._ground)
+                           lam=self._material.lam, ground=self._ground, contact=self._contact_term())
+
+    def _contact_term(self):
+        """Contact hook (issue 17): the numpy contact term of the Newton reference, or None."""
+        from ..newton.contact_term import ContactTerm
+
+        if self._contact is None:
+            return None
+        if self._contact.friction > 0:
+            raise ConfigError("the Newton reference minimises G, which has no friction; "
+                              "set contact friction=0 to compare against it")
+        return ContactTerm(self._contact, self.mesh.tets, self.mesh.vertices, self.free_mask)
 
     def newton_reference(self, tolerance: float = 1e-10, max_iterations: int = 50, x0=None) -> np.ndarray:
         """(N, 3) converged global Newton solution x* of the next step, from the current state.
 
-        x0: (N, 3) start of the Newton iterations (default y); the simulation itself is not changed.
+        x0: (N, 3) start of the Newton iterations (default y; x_n with contact, solved by the numpy
+        `newton_solve`, since y may lie across a body); the simulation itself is not changed.
         To measure a VBD step cheaply, build `problem = sim.step_problem()` before `sim.step()` and
         warm-start `solver.fast_newton_solve(problem, sim.positions)` after it. Solved by the Taichi
         Newton (`global_newton`); `solver.newton_solve` is its independent numpy twin.
         """
         from ..newton.direct import fast_newton_solve
+        from ..newton.oracle import newton_solve
 
         tolerance = _positive(tolerance, "tolerance", "(relative)")
         max_iterations = _count(max_iterations, "max_iterations")
         problem = self.step_problem()
+        if problem.contact is not None:      # contact hook (issue 17): numpy Newton from x_n, never y
+            start = problem.constrained_positions if x0 is None else self._checked_state(x0, "x0")
+            return newton_solve(problem, start, tolerance, max_iterations).x
         start = problem.y_with_constraints() if x0 is None else self._checked_state(x0, "x0")
         return fast_newton_solve(problem, start, tolerance, max_iterations).x
