@@ -47,3 +47,91 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds():
         _judge(sim)
     assert touched > 0
     assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
+
+
+def test_stack_on_a_fixed_slab_never_crosses():
+    slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
+    lower, upper = _cube((0.0, 0.0, 0.006)), _cube((0.02, 0.01, 0.112))
+    mesh = solver.merge_meshes([slab, lower, upper])
+    fixed = np.arange(slab.n_vertices)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, contact=contact)
+    for _ in range(30):
+        sim.step()
+        _judge(sim)
+    assert sim.contact_count() > 0
+    assert sim.positions[slab.n_vertices:, 2].min() > 0, "a cube went through the slab"
+
+
+def _hinged_cubes():
+    """Cube A = [0, 0.1]^3 and cube B = [0.1, 0.2] x [0, 0.1] x [0.1, 0.2], one body joined along the edge
+    x = z = 0.1: folding B about that edge brings its face x = 0.1 down onto A's top face."""
+    a, b = _cube((0.0, 0.0, 0.0)), _cube((0.1, 0.0, 0.1))
+    merged = solver.merge_meshes([a, b])
+    x = merged.vertices
+    key = np.round(x / 1e-9).astype(np.int64)
+    _, first, index = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    keep = np.sort(first)
+    renumber = np.empty(len(first), np.int64)
+    renumber[np.argsort(first)] = np.arange(len(first))
+    return solver.TetMesh(x[keep], renumber[index.ravel()][merged.tets]), a.n_vertices
+
+
+def test_self_contact_fold_never_crosses():
+    mesh, n_a = _hinged_cubes()
+    assert len(np.unique(solver.Simulation(mesh, SOFT).bodies)) == 1
+    hinge = np.array([0.1, 0.0, 0.1])
+    w = np.array([0.0, -12.0, 0.0])                      # rad/s: B turns about the hinge towards A's top
+    fixed = np.arange(n_a)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 120, gravity=(0, 0, 0), fixed=fixed, iterations=30,
+                            contact=contact)
+    v = np.cross(w, mesh.vertices - hinge)
+    v[fixed] = 0.0
+    sim.set_velocities(v)
+    touched = 0
+    for _ in range(30):
+        sim.step()
+        _judge(sim, self_contact=True)
+        touched = max(touched, sim.contact_count())
+    assert touched > 0
+
+
+def test_converged_vbd_matches_newton_reference_with_contact():
+    slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
+    cube = _cube((0.0, 0.0, 0.004))
+    mesh = solver.merge_meshes([slab, cube])
+    fixed = np.arange(slab.n_vertices)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=400, contact=contact)
+    for _ in range(3):
+        x_n = sim.positions
+        x_star = sim.newton_reference()
+        sim.step()
+        assert sim.contact_count() > 0
+        assert solver.relative_error(sim.positions, x_star, x_n) <= 1e-3
+
+
+def test_bad_contact_input_is_one_line():
+    a, b = _cube((0.0, 0.0, 0.0)), _cube((0.15, 0.0, 0.0))
+    mesh = solver.merge_meshes([a, b])
+    cases = [
+        (lambda: solver.Simulation(mesh, SOFT, contact="on"), "contact must be a solver.Contact"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="newton"), "no contact term"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="pcg"), "no contact term"),
+        (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.05, 0.0, 0.0))]), SOFT,
+                                   contact=solver.Contact()), "bodies 0 and 1 intersect"),
+        (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.1, 0.0, 0.0))]), SOFT,
+                                   contact=solver.Contact()), "bodies 0 and 1 touch"),
+    ]
+    sim = solver.Simulation(mesh, SOFT, contact=solver.Contact(friction=0.3))
+    cases += [(lambda: setattr(sim, "contact", 1.0), "contact must be a solver.Contact"),
+              (lambda: sim.newton_reference(), "no friction"),
+              (lambda: sim.set_positions(np.vstack([a.vertices, a.vertices + 0.02])), "intersect")]
+    for make, match in cases:
+        with pytest.raises(solver.ConfigError, match=match) as err:
+            make()
+        assert "\n" not in str(err.value)
+    newton = solver.Simulation(mesh, SOFT, method="newton")
+    with pytest.raises(solver.ConfigError, match="no contact term"):
+        newton.contact = solver.Contact()
