@@ -49,13 +49,14 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds():
     assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
 
 
-def test_stack_on_a_fixed_slab_never_crosses():
+@pytest.mark.parametrize("rho", [None, 0.8])
+def test_stack_on_a_fixed_slab_never_crosses(rho):
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
     lower, upper = _cube((0.0, 0.0, 0.006)), _cube((0.02, 0.01, 0.112))
     mesh = solver.merge_meshes([slab, lower, upper])
     fixed = np.arange(slab.n_vertices)
     contact = solver.Contact(stiffness=1e4, radius=0.005)
-    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, contact=contact)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, chebyshev_rho=rho, contact=contact)
     for _ in range(30):
         sim.step()
         _judge(sim)
@@ -132,6 +133,40 @@ def test_bad_contact_input_is_one_line():
         with pytest.raises(solver.ConfigError, match=match) as err:
             make()
         assert "\n" not in str(err.value)
+    frictionless = solver.Simulation(mesh, SOFT, contact=solver.Contact())
+    frictionless.begin_step()
+    with pytest.raises(solver.ConfigError, match="without contact"):
+        frictionless.solve_color(0)
+    frictionless.end_step()
+    with pytest.raises(solver.ConfigError, match="no contact term"):
+        solver.fast_newton_solve(frictionless.step_problem(), frictionless.positions)
     newton = solver.Simulation(mesh, SOFT, method="newton")
     with pytest.raises(solver.ConfigError, match="no contact term"):
         newton.contact = solver.Contact()
+
+
+@pytest.mark.parametrize("mu", [0.8, 0.3])
+def test_friction_on_an_incline_sticks_or_slides_at_coulomb_acceleration(mu):
+    """A cube on a fixed slab under gravity tilted by 30 degrees, converged steps: it sticks for
+    mu > tan 30 (moves < 2 mm in 0.75 s), else slides at g (sin - mu cos) within 10 %."""
+    slab = solver.box_mesh(size=(1.2, 0.3, 0.05), cells=(12, 3, 1), origin=(-0.1, -0.1, -0.05))
+    cube = _cube((0.0, 0.0, 0.0045))
+    mesh = solver.merge_meshes([slab, cube])
+    n = slab.n_vertices
+    theta = np.radians(30.0)
+    gravity = 9.81 * np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=mu)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, gravity=gravity, fixed=np.arange(n), iterations=100,
+                            contact=contact)
+    m = sim.masses[n:]
+    x, v = [], []
+    for _ in range(45):
+        sim.step()
+        assert sim.contact_count() > 0
+        x.append(sim.positions[n:, 0].mean())
+        v.append(m @ sim.velocities[n:, 0] / m.sum())
+    if mu > np.tan(theta):
+        assert abs(x[-1] - x[0]) < 2e-3
+    else:
+        a = (v[-1] - v[14]) / (30 * sim.dt)
+        assert a == pytest.approx(9.81 * (np.sin(theta) - mu * np.cos(theta)), rel=0.1)

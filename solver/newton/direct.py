@@ -398,5 +398,8 @@ def global_newton(tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver
 def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = 1e-10, max_iterations: int = 50,
                       keep_iterates: bool = False, linear_solver=LinearSolver.AUTO) -> NewtonResult:
     """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`."""
+    if getattr(problem, "contact", None) is not None:     # contact hook (issue 17)
+        raise ConfigError("fast_newton_solve has no contact term yet; solve a problem with contact by "
+                          "solver.newton_solve (or sim.newton_reference())")
     return global_newton(problem.tets, problem.free, linear_solver).solve(problem, x0, tolerance, max_iterations,
                                                                          keep_iterates)

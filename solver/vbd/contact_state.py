@@ -54,9 +54,10 @@ class ContactStage:
         self.bound_hits += hits
         self._hit = hits > 0
 
-    def iterate(self, state, mass, adjacency, params, n_colors: int, dtype) -> int:
+    def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`), detecting first when
-        due; returns the number of bound hits."""
+        due, then the Chebyshev step of weight omega (None: none) for the vertices that have not touched this
+        step; returns the number of bound hits."""
         if self._hit or self._since_detection >= self.contact.detection_interval:
             self.detect(state, X)
         d, c = self.detector, self.contact
@@ -64,6 +65,9 @@ class ContactStage:
                                                    d.incidence_offsets, d.incidence, self.x_det, d.bound,
                                                    self._target, self.touched, c.stiffness, c.radius, c.friction,
                                                    c.friction_speed, n_colors, dtype)
+        if omega is not None:
+            hits += contact_sweep.chebyshev_contact_step(state, adjacency[0], self.touched, self.x_det, d.bound,
+                                                         omega, dtype)
         self._since_detection += 1
         self._hit = hits > 0
         self.bound_hits += hits

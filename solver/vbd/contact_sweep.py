@@ -10,7 +10,8 @@ For the vertex i in colour slot k:
     x_i      <- x_i + H_i^-1 f_i, then clamped to |x_i - x_det,i| <= b_i
 
 where x_det are the positions of the last detection and b the bounds it computed (OGC's conservative
-bounds, g < 1/2: no two primitives can cross before the next detection). One launch per iteration.
+bounds, g < 1/2: no two primitives can cross before the next detection). One launch per iteration, and
+with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
 Arrays besides those of `vertex_solve` (P pairs, N vertices): kind (P,) int32 `PairKind`; pair (P,)
 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex;
@@ -20,7 +21,8 @@ every vertex with a pair closer than the radius. k_c N/m, r m, mu, friction_spee
 from .._ti import ti
 
 from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
-from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N
+from .chebyshev import chebyshev_update
+from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV, X_PREV2
 from .vertex_solve import force_hessian, step_limit
 
 
@@ -92,6 +94,30 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
             target[i] = x_new
         for k in range(color_starts[c], color_starts[c + 1]):
             state[X, color_order[k]] = target[color_order[k]]
+    return hits
+
+
+@ti.kernel
+def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndarray(), touched: ti.types.ndarray(),
+                           x_det: ti.types.ndarray(), bound: ti.types.ndarray(), omega: ti.f64,
+                           dtype: ti.template()) -> ti.i32:
+    """The Chebyshev step (`chebyshev.py`) for the free vertices that have not touched this step (VBD
+    Sec. 3.8: off for the others, whose history only shifts), each clamped to its bound after; returns how
+    many were clamped."""
+    hits = 0
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        if touched[i]:
+            state[X_PREV2, i] = state[X_PREV, i]
+            state[X_PREV, i] = state[X, i]
+        else:
+            chebyshev_update(state, i, ti.cast(omega, dtype))
+            moved = state[X, i] - x_det[i]
+            length = moved.norm()
+            if length > bound[i]:
+                state[X, i] = x_det[i] + moved * (bound[i] / length)
+                state[X_PREV, i] = state[X, i]
+                ti.atomic_add(hits, 1)
     return hits
 
 

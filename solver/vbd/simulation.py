@@ -711,12 +711,12 @@ class Simulation:
         ran = 0
         for _ in range(_count(k, "k")):
             self._iteration += 1
-            if self._contact_stage is not None:  # contact hook (issue 17): Chebyshev stays off with contact
+            if self._rho is not None:
+                self._omega = chebyshev_omega(self._iteration, self._rho, self._omega)
+            if self._contact_stage is not None:  # contact hook (issue 17): no Chebyshev where a vertex touched
                 self._contact_stage.iterate(self.state, self._mass, self._adjacency, self._params, self.n_colors,
-                                            self.dtype)
+                                            self.dtype, None if self._rho is None else self._omega)
             else:
-                if self._rho is not None:
-                    self._omega = chebyshev_omega(self._iteration, self._rho, self._omega)
                 vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f,
                                            color_starts, self._params, self.n_colors, self.dtype)
                 if self._rho is not None:
@@ -734,6 +734,8 @@ class Simulation:
         """Solve the vertices of colour c once (part of an iteration; for plots of one colour sweep)."""
         if not self._in_step:
             raise ConfigError("solve_color() needs begin_step() first")
+        if self._contact_stage is not None:      # contact hook (issue 17)
+            raise ConfigError("solve_color() runs the sweep without contact; use run_iterations() with contact")
         if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c < self.n_colors:
             raise ConfigError(f"colour must be an integer in 0..{self.n_colors - 1}, got {c!r}")
         color_order, offsets, others, adj_f, _ = self._adjacency
