@@ -170,3 +170,35 @@ def test_friction_on_an_incline_sticks_or_slides_at_coulomb_acceleration(mu):
     else:
         a = (v[-1] - v[14]) / (30 * sim.dt)
         assert a == pytest.approx(9.81 * (np.sin(theta) - mu * np.cos(theta)), rel=0.1)
+
+
+def test_skipped_detections_never_miss_an_active_pair():
+    """Between detections the sweep uses the last detection's pairs; after every iteration every pair closer
+    than the radius (numpy twin at the current positions) must be among them."""
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+
+    a, b = _cube((0.0, 0.0, 0.0), cells=2), _cube((0.1155, 0.02, 0.01), cells=2)
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e3, radius=0.005, detection_interval=3)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 240, gravity=(0, 0, 0), iterations=10, contact=contact)
+    v = np.zeros((mesh.n_vertices, 3))
+    v[:a.n_vertices, 0], v[a.n_vertices:, 0] = 0.1, -0.1
+    sim.set_velocities(v)
+    stage = sim._contact_stage
+    surface, bodies = stage.detector.surface, stage.bodies
+    excluded = rest_exclusions_np(mesh.vertices, surface, bodies, contact)
+    free = np.ones(mesh.n_vertices, bool)
+    active_seen = 0
+    for _ in range(30):
+        sim.begin_step()
+        for _ in range(10):
+            sim.run_iterations(1)
+            kind, _, primitives, distance = stage.detector.pairs()
+            known = {(int(k), int(p), int(q)) for k, (p, q) in zip(kind, primitives)}
+            kind, _, primitives, distance = find_pairs_np(sim.positions, surface, bodies, free, contact, excluded)
+            active = {(int(k), int(p), int(q)) for k, (p, q), d in zip(kind, primitives, distance)
+                      if d < contact.radius}
+            assert active <= known
+            active_seen = max(active_seen, len(active))
+        sim.end_step()
+    assert active_seen > 0

@@ -1,9 +1,13 @@
 """Contact in a VBD simulation (issue 17): the detector, the positions of the last detection and when
 to detect again, the contact term of G and the measurements the scripts read.
 
-Detections happen at the start of a step (at x_n; the initial guess is then clamped to the bounds),
-every `Contact.detection_interval` iterations, and before any iteration that follows one in which a
-vertex hit its bound: bounds may cost detections, never progress.
+Detections happen before any iteration that follows one in which a vertex hit its bound (bounds may
+cost detections, never progress), and at the start of a step (at x_n; the initial guess is then clamped
+to the bounds) and every `Contact.detection_interval` iterations unless no pair can have come closer
+than the radius since the last one: a pair it did not find was at least query_radius q apart, and
+moves closer by at most twice the largest displacement delta since then, so while
+2 delta < q - radius the pairs and bounds of the last detection are still complete and valid (the
+bounds limit the displacement from x_det, wherever the step started).
 """
 import numpy as np
 from scipy.spatial import cKDTree
@@ -33,7 +37,7 @@ class ContactStage:
         self._target = ti.Vector.ndarray(3, dtype, n)
         self.touched = ti.ndarray(ti.i32, n)
         self._since_detection = 0
-        self._hit = False
+        self._due = False
         self.bound_hits = 0
         self.detections = 0
 
@@ -42,23 +46,34 @@ class ContactStage:
         n_pairs = self.detector.detect(state, row)
         contact_sweep.copy_row(state, row, self.x_det)
         self._since_detection = 0
-        self._hit = False
+        self._due = False
         self.detections += 1
         return n_pairs
 
+    def _stale(self, state, row: int) -> bool:
+        """Whether at state[row] a pair the last detection missed may have come closer than the radius
+        (module docstring)."""
+        c = self.contact
+        return 2 * contact_sweep.largest_move(state, row, self.x_det) >= c.query_radius - c.radius
+
     def begin_step(self, state, color_order) -> None:
-        """Detect at x_n and clamp the initial guess to the bounds; no vertex has touched yet."""
+        """Detect at x_n when due and clamp the initial guess to the bounds; no vertex has touched yet.
+        Called after the guess is set, so the row X_N holds x_n and X the guess."""
         contact_sweep.clear(self.touched)
-        self.detect(state, X_N)
+        if self._due or self._stale(state, X_N):
+            self.detect(state, X_N)
         hits = contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.detector.bound)
         self.bound_hits += hits
-        self._hit = hits > 0
+        self._due = hits > 0
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`), detecting first when
         due, then the Chebyshev step of weight omega (None: none) for the vertices that have not touched this
         step; returns the number of bound hits."""
-        if self._hit or self._since_detection >= self.contact.detection_interval:
+        if self._since_detection >= self.contact.detection_interval and not self._due:
+            self._due = self._stale(state, X)
+            self._since_detection = 0
+        if self._due:
             self.detect(state, X)
         d, c = self.detector, self.contact
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair,
@@ -69,7 +84,7 @@ class ContactStage:
             hits += contact_sweep.chebyshev_contact_step(state, adjacency[0], self.touched, self.x_det, d.bound,
                                                          omega, dtype)
         self._since_detection += 1
-        self._hit = hits > 0
+        self._due = hits > 0
         self.bound_hits += hits
         return hits
 

@@ -138,6 +138,15 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
 
 
 @ti.kernel
+def largest_move(state: ti.types.ndarray(), row: ti.i32, x_det: ti.types.ndarray()) -> ti.f64:
+    """max_i |state[row, i] - x_det,i| in m over all vertices (fixed and kinematic ones included)."""
+    result = ti.cast(0.0, ti.f64)
+    for i in range(x_det.shape[0]):
+        ti.atomic_max(result, ti.cast((state[row, i] - x_det[i]).norm(), ti.f64))
+    return result
+
+
+@ti.kernel
 def copy_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
     """out[i] = state[row, i]."""
     for i in range(out.shape[0]):
