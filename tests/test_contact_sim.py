@@ -49,14 +49,15 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds():
     assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
 
 
-@pytest.mark.parametrize("rho", [None, 0.8])
-def test_stack_on_a_fixed_slab_never_crosses(rho):
+@pytest.mark.parametrize("rho,precision", [(None, "float64"), (0.8, "float64"), (None, "float32")])
+def test_stack_on_a_fixed_slab_never_crosses(rho, precision):
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
     lower, upper = _cube((0.0, 0.0, 0.006)), _cube((0.02, 0.01, 0.112))
     mesh = solver.merge_meshes([slab, lower, upper])
     fixed = np.arange(slab.n_vertices)
     contact = solver.Contact(stiffness=1e4, radius=0.005)
-    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, chebyshev_rho=rho, contact=contact)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, chebyshev_rho=rho,
+                            precision=precision, contact=contact)
     for _ in range(30):
         sim.step()
         _judge(sim)
@@ -107,10 +108,16 @@ def test_converged_vbd_matches_newton_reference_with_contact():
     sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=400, contact=contact)
     for _ in range(3):
         x_n = sim.positions
+        problem = sim.step_problem()
         x_star = sim.newton_reference()
         sim.step()
         assert sim.contact_count() > 0
         assert solver.relative_error(sim.positions, x_star, x_n) <= 1e-3
+    x = sim.positions + 2e-4 * np.random.default_rng(0).standard_normal(sim.positions.shape) * sim.free_mask[:, None]
+    sim.set_positions(x)                     # G and its gradient with contact away from x*: Taichi against numpy
+    assert sim.energy() == pytest.approx(problem.energy(x), rel=1e-10)
+    g = problem.gradient(x)
+    np.testing.assert_allclose(sim.residual(), -g, rtol=0, atol=1e-9 * np.abs(g).max())
 
 
 def test_bad_contact_input_is_one_line():

@@ -30,6 +30,7 @@ class ContactStage:
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype):
         self.contact = contact
+        self.dtype = dtype
         self.detector = ContactDetector(mesh, free, contact, dtype)
         self.bodies = self.detector.bodies
         n = mesh.n_vertices
@@ -62,7 +63,7 @@ class ContactStage:
         contact_sweep.clear(self.touched)
         if self._due or self._stale(state, X_N):
             self.detect(state, X_N)
-        hits = contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.detector.bound)
+        hits = contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.detector.bound, self.dtype)
         self.bound_hits += hits
         self._due = hits > 0
 

@@ -46,13 +46,13 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
                     w_i = w[j]
                 u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
             f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
-            f += f_c
-            H += H_c
+            f += ti.cast(f_c, dtype)
+            H += ti.cast(H_c, dtype)
             if mu > 0:
-                db, _ = barrier_derivatives(d, k_c, r)
+                db, d2b = barrier_derivatives(d, k_c, r)
                 f_f, H_f = contact_friction(u, n, w_i, -db, mu, eps_u, dtype)
-                f += f_f
-                H += H_f
+                f += ti.cast(f_f, dtype)
+                H += ti.cast(H_f, dtype)
             active += 1
     return f, H, active
 
@@ -89,7 +89,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
             moved = x_new - x_det[i]
             length = moved.norm()
             if length > bound[i]:
-                x_new = x_det[i] + moved * (bound[i] / length)
+                x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
                 ti.atomic_add(hits, 1)
             target[i] = x_new
         for k in range(color_starts[c], color_starts[c + 1]):
@@ -115,7 +115,7 @@ def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndar
             moved = state[X, i] - x_det[i]
             length = moved.norm()
             if length > bound[i]:
-                state[X, i] = x_det[i] + moved * (bound[i] / length)
+                state[X, i] = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
                 state[X_PREV, i] = state[X, i]
                 ti.atomic_add(hits, 1)
     return hits
@@ -123,7 +123,7 @@ def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndar
 
 @ti.kernel
 def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
-                    bound: ti.types.ndarray()) -> ti.i32:
+                    bound: ti.types.ndarray(), dtype: ti.template()) -> ti.i32:
     """Clamp every free vertex (slot of `color_order`) to |x_i - x_det,i| <= b_i (the initial guess);
     returns how many were clamped."""
     hits = 0
@@ -132,7 +132,7 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
         moved = state[X, i] - x_det[i]
         length = moved.norm()
         if length > bound[i]:
-            state[X, i] = x_det[i] + moved * (bound[i] / length)
+            state[X, i] = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
             ti.atomic_add(hits, 1)
     return hits
 
@@ -167,8 +167,8 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
     E = ti.cast(0.0, ti.f64)
     for p in range(n_pairs):
         v = pair[p]
-        d, _, _ = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
-        E += ti.cast(barrier(ti.cast(d, ti.f64), k_c, r), ti.f64)
+        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
+        E += barrier(ti.cast(d, ti.f64), k_c, r)
     return E
 
 
@@ -184,9 +184,9 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-        f_c, H_c, _ = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence,
-                                               ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype), eps_u,
-                                               dtype)
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence,
+                                                    ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
+                                                    eps_u, dtype)
         f_out[i] += f_c
         H_out[i] += H_c
         ti.atomic_max(result, ti.cast(f_out[i].norm(), ti.f64))
