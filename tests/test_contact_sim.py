@@ -209,3 +209,11 @@ def test_skipped_detections_never_miss_an_active_pair():
             active_seen = max(active_seen, len(active))
         sim.end_step()
     assert active_seen > 0
+
+
+def test_auto_method_picks_vbd_with_contact():
+    mesh = solver.merge_meshes([_cube((0.0, 0.0, 0.0)), _cube((0.15, 0.0, 0.0))])
+    stiff = solver.Material(youngs_modulus=1e9, poisson_ratio=0.3, density=1000.0)
+    assert solver.Simulation(mesh, stiff, method="auto").method is solver.Method.MULTILEVEL
+    sim = solver.Simulation(mesh, stiff, method="auto", contact=solver.Contact())
+    assert sim.method is solver.Method.VBD and "contact" in sim.method_reason

@@ -167,12 +167,15 @@ class Simulation:
     "multilevel" (two-level VBD, `iterations` fine sweeps per step in cycles of 2 + coarse + 2),
     "auto" (chosen from N_c, see `method_reason`); the global ones minimise G, so they need
     damping 0 and no ground friction;
-    record_history: keep G and max |f_i| after every iteration of the last step in `history`.
+    record_history: keep G and max |f_i| after every iteration of the last step in `history`;
+    contact: a `Contact` between the mesh's bodies (`bodies`, `merge_meshes`) and within one, or None
+    (`contact_state.py`; method "vbd" only, Chebyshev skips the vertices that touched this step, and the
+    translation correction, which needs every vertex free, moves all bodies together).
 
     Live settings, used from the next iteration or step on: `dt`, `gravity`, `damping`, `ground`,
     `chebyshev_rho`, `material` (or `set_material`), `iterations`, `tolerance`, `check_every`,
     `initial_guess`, `translation_correction`, `keep_orientation`, `kinematic_motion`,
-    `record_history`. Fixed at construction
+    `record_history`, `contact`. Fixed at construction
     (assigning raises `ConfigError`): `mesh`, `fixed_mask`, `kinematic_mask`, `free_mask`,
     `precision`, `arch`, `coloring`, `topology`.
 
@@ -220,6 +223,7 @@ class Simulation:
         self.check_every = check_every
         self.kinematic_motion = kinematic_motion
         self.record_history = record_history
+        self._contact = as_contact(contact)     # contact hook (issue 17): read by the choice of method
         if not isinstance(material, Material):
             raise ConfigError(f"material must be a solver.Material, got {type(material).__name__}")
 
@@ -245,8 +249,10 @@ class Simulation:
         self.method_reason = f"method={method.value} was asked for"
         if method is Method.AUTO:
             method, self.method_reason = choose(wave_cells(self.mesh, material, float(dt)))
+            if self._contact is not None and method is not Method.VBD:      # contact hook (issue 17)
+                method, self.method_reason = Method.VBD, f"{self.method_reason}; but only 'vbd' has contact"
         self._refuse_non_potential(method, self._damping, self._ground)
-        self._refuse_contact(method, getattr(self, "_contact", None))
+        self._refuse_contact(method, self._contact)
         self.method = method
         self._two_level = None
 
