@@ -147,6 +147,9 @@ def test_bad_contact_input_is_one_line():
     frictionless.end_step()
     with pytest.raises(solver.ConfigError, match="no contact term"):
         solver.fast_newton_solve(frictionless.step_problem(), frictionless.positions)
+    scenery = solver.merge_meshes([a, _cube((0.1, 0.0, 0.0)), _cube((0.0, 0.0, 0.3))])    # fixed slabs may touch
+    assert len(np.unique(solver.Simulation(scenery, SOFT, fixed=np.arange(2 * a.n_vertices),
+                                           contact=solver.Contact()).bodies)) == 3
     newton = solver.Simulation(mesh, SOFT, method="newton")
     with pytest.raises(solver.ConfigError, match="no contact term"):
         newton.contact = solver.Contact()
@@ -217,3 +220,33 @@ def test_auto_method_picks_vbd_with_contact():
     assert solver.Simulation(mesh, stiff, method="auto").method is solver.Method.MULTILEVEL
     sim = solver.Simulation(mesh, stiff, method="auto", contact=solver.Contact())
     assert sim.method is solver.Method.VBD and "contact" in sim.method_reason
+
+
+def test_pile_of_eight_cubes_in_a_fixed_open_box_settles_in_two_layers():
+    """Acceptance 4 with cubes for balls: 8 soft cubes (two layers of 2 x 2) dropped into an open box of five
+    fixed slabs, friction 0.3. Every step: no edge of a cube through a triangle (numpy checker), gaps > 0, no
+    cube out of the box; after 1.5 s two layers rest, mean speed < 0.1 m/s."""
+    W, T, H, s, gap = 0.3, 0.02, 0.25, 0.08, 0.006
+    walls = [solver.box_mesh(size=(W + 2 * T, W + 2 * T, T), cells=(3, 3, 1), origin=(-T, -T, -T)),
+             solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, 3, 2), origin=(-T, -T, gap)),
+             solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, 3, 2), origin=(W, -T, gap)),
+             solver.box_mesh(size=(W - 2 * gap, T, H), cells=(3, 1, 2), origin=(gap, -T, gap)),
+             solver.box_mesh(size=(W - 2 * gap, T, H), cells=(3, 1, 2), origin=(gap, W, gap))]
+    cubes = [_cube((0.04 + 0.14 * i + 0.01 * k, 0.04 + 0.14 * j, 0.01 + 0.1 * k), size=s)
+             for k in range(2) for i in range(2) for j in range(2)]
+    mesh = solver.merge_meshes(walls + cubes)
+    n_walls = sum(w.n_vertices for w in walls)
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=np.arange(n_walls), iterations=20, contact=contact)
+    for _ in range(90):
+        sim.step()
+        found, edges, triangles = crossings(sim.positions, mesh.tets)
+        moving = (edges[found[:, 0]] >= n_walls).any(axis=1) | (triangles[found[:, 1]] >= n_walls).any(axis=1)
+        assert not moving.any(), f"a cube edge passes through a triangle at t = {sim.time:.3f} s"
+        assert sim.min_separation() > 0
+        x = sim.positions[n_walls:]
+        assert (x[:, :2] > 0).all() and (x[:, :2] < W).all() and (x[:, 2] > 0).all(), "a cube left the box"
+    heights = np.sort(x.reshape(8, -1, 3).mean(axis=1)[:, 2])
+    np.testing.assert_allclose(heights[:4], s / 2, atol=0.01)          # on the floor
+    np.testing.assert_allclose(heights[4:], 3 * s / 2, atol=0.02)      # on the lower cubes
+    assert np.linalg.norm(sim.velocities[n_walls:], axis=1).mean() < 0.1

@@ -31,6 +31,7 @@ class ContactStage:
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype):
         self.contact = contact
         self.dtype = dtype
+        self.free = np.asarray(free, dtype=bool)
         self.detector = ContactDetector(mesh, free, contact, dtype)
         self.bodies = self.detector.bodies
         n = mesh.n_vertices
@@ -122,7 +123,7 @@ class ContactStage:
     def check_apart(self, state, x: np.ndarray) -> None:
         """Raise `ConfigError` if, at positions x (N, 3) (also in state's X row), two bodies (or two parts
         of one, with self contact) intersect or touch, naming both bodies and the distance."""
-        crossing = surface_crossing(x, self.detector.surface, self.bodies, self.contact.self_contact)
+        crossing = surface_crossing(x, self.detector.surface, self.bodies, self.free, self.contact.self_contact)
         if crossing is not None:
             a, b = crossing
             raise ConfigError(f"bodies {a} and {b} intersect (a surface edge passes through a triangle, distance 0 m); "
@@ -137,9 +138,10 @@ class ContactStage:
                               "leave a gap between them before simulating")
 
 
-def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, self_contact: bool):
+def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray, self_contact: bool):
     """(body a, body b) of the first surface edge that passes through a surface triangle sharing none of
-    its vertices (of another body, or of its own with self_contact), else None; x (N, 3). Decided by
+    its vertices (of another body, or of its own with self_contact; not both fixed or kinematic, as the
+    pairs), else None; x (N, 3), free (N,) bool. Decided by
     signed volumes: the edge's ends lie strictly on either side of the triangle's plane and the edge's
     line passes inside the triangle."""
     triangles, edges = surface.triangles, surface.edges
@@ -151,7 +153,8 @@ def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, self_contact: b
     t = np.concatenate([np.asarray(k, dtype=np.int64) for k in near] + [np.zeros(0, np.int64)])
     shares = (edges[e][:, :, None] == triangles[t][:, None, :]).any(axis=(1, 2))
     same = bodies[edges[e, 0]] == bodies[triangles[t, 0]]
-    keep = ~shares & (~same | self_contact)
+    moves = free[edges[e]].any(axis=1) | free[triangles[t]].any(axis=1)
+    keep = ~shares & (~same | self_contact) & moves
     e, t = e[keep], t[keep]
 
     def six_volume(a, b, c, d):
