@@ -70,6 +70,8 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
     step: the lagged Hessian is then as good as a new one, and the factorisation is saved.
     step_tolerance: relative to the body's size (0: never stop on the step); force_tolerance: N, or None;
     time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds.
+    With contact (`problem.contact`) the line search starts from the largest step that keeps every vertex
+    within its conservative bound (`ContactTerm.step_cap`), so no iterate crosses a surface.
     Warns when it stops without converging; `name` names the solver in the warnings.
     """
     free = problem.free
@@ -102,7 +104,8 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
                           stacklevel=3)
             break
         slope = float(np.vdot(g, d))
-        alpha = 1.0
+        contact = getattr(problem, "contact", None)
+        alpha = 1.0 if contact is None else contact.step_cap(x, d)   # contact: no vertex past its bound
         while alpha >= SMALLEST_ALPHA:
             np.multiply(d, alpha, out=x_new)
             x_new += x

@@ -29,7 +29,8 @@ class StepProblem:
     tets (M, 4) int; grad_rows (M, 4, 3): m_k, so that F = sum_k x_k m_k^T; volumes (M,) m^3;
     masses (N,) kg; y (N, 3) inertial target; free (N,) bool, the unknowns;
     constrained_positions (N, 3): where the other (fixed, kinematic) vertices are during the step;
-    h in s; mu, lam in Pa (Neo-Hookean); ground: a `solver.Ground` or None.
+    h in s; mu, lam in Pa (Neo-Hookean); ground: a `solver.Ground` or None; contact: a `ContactTerm`
+    (contact between bodies, `contact_term.py`) or None.
     """
 
     tets: np.ndarray
@@ -43,6 +44,7 @@ class StepProblem:
     mu: float
     lam: float
     ground: object = None
+    contact: object = None     # contact hook (issue 17): a `newton.contact_term.ContactTerm` or None
 
     def y_with_constraints(self) -> np.ndarray:
         """(N, 3): y at free vertices, the prescribed positions elsewhere (a natural start)."""
@@ -58,7 +60,8 @@ class StepProblem:
         inertia = 0.5 / self.h ** 2 * np.sum(self.masses[self.free] * np.sum(d * d, axis=1))
         elastic = np.sum(self.volumes * psi_np(self.deformation_gradients(x), self.mu, self.lam))
         contact = 0.0 if self.ground is None else ground_energy_np(self.ground, x, self.free)
-        return float(inertia + elastic + contact)
+        bodies = 0.0 if self.contact is None else self.contact.energy(x)
+        return float(inertia + elastic + contact + bodies)
 
     def gradient(self, x: np.ndarray) -> np.ndarray:
         """(N, 3) dG/dx, zero at constrained vertices."""
@@ -69,6 +72,8 @@ class StepProblem:
         g += self.masses[:, None] / self.h ** 2 * (x - self.y)
         if self.ground is not None:
             g += ground_gradient_np(self.ground, x, self.free)
+        if self.contact is not None:
+            g += self.contact.gradient(x)
         g[~self.free] = 0.0
         return g
 
@@ -93,7 +98,8 @@ class StepProblem:
         if self.ground is not None:
             diag += ground_hessian_diag_np(self.ground, x, self.free)
         H = sp.coo_matrix((blocks.ravel(), (rows, cols)), shape=(n, n)).tocsr()
-        return H + sp.diags(diag)
+        H = H + sp.diags(diag)
+        return H if self.contact is None else H + self.contact.hessian(x)
 
 
 def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,

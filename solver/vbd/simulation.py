@@ -26,6 +26,7 @@ from . import energy as energy_kernels
 from . import global_methods, implicit_euler, orientation, translation, vertex_solve
 from ..backend import as_precision, ensure_taichi, running_on_cpu
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
+from .contact_state import as_contact
 from ..errors import ConfigError, VBDError, enum_value
 from .implicit_euler import InitialGuess
 from ..method import Method, as_method, choose, wave_cells
@@ -87,11 +88,14 @@ class Simulation(SimulationState):
     from N_c, see `method_reason`). The other arguments are the fields of `Settings` (dt in s, gravity
     in m/s^2, iterations, tolerance, check_every, initial_guess, chebyshev_rho, damping in s, ground,
     translation_correction, keep_orientation, kinematic_motion, record_history), where what each one
-    means for each method is written down; a setting a method cannot honour raises `ConfigError`.
+    means for each method is written down; a setting a method cannot honour raises `ConfigError`;
+    contact: a `Contact` between the mesh's bodies (`bodies`, `merge_meshes`) and within one, or None
+    (`contact_state.py`; method "vbd" only: Chebyshev skips the vertices that touched this step, and
+    the translation correction, which needs every vertex free, moves all bodies together).
 
     Live settings, used from the next iteration or step on: every field of `Settings` (`sim.dt = ...`
     or, several at once, `sim.settings = dataclasses.replace(sim.settings, ...)`) and `material` (or
-    `set_material`). Fixed at construction (assigning raises `ConfigError`): `mesh`, `fixed_mask`,
+    `set_material`), `contact`. Fixed at construction (assigning raises `ConfigError`): `mesh`, `fixed_mask`,
     `kinematic_mask`, `free_mask`, `precision`, `arch`, `coloring`, `topology`, `method`.
 
     During a step, `stop_below` is the max_i |f_i| in N at which it stops (None without a tolerance);
@@ -108,7 +112,7 @@ class Simulation(SimulationState):
                  kinematic_motion: Optional[Callable] = None, precision="float64", arch: Optional[str] = None,
                  coloring_order: VertexOrder = VertexOrder.NATURAL,
                  translation_correction: bool = True, keep_orientation: bool = False,
-                 method=Method.VBD, record_history: bool = False):
+                 method=Method.VBD, record_history: bool = False, contact=None):
         if not isinstance(mesh, TetMesh):
             raise ConfigError(f"mesh must be a solver.TetMesh, got {type(mesh).__name__}; "
                               "use solver.load_mesh or solver.box_mesh")
@@ -134,6 +138,8 @@ class Simulation(SimulationState):
         self.method_reason = f"method={method.value} was asked for"
         if method is Method.AUTO:
             method, self.method_reason = choose(wave_cells(mesh, material, settings.dt))
+            if as_contact(contact) is not None and method is not Method.VBD:
+                method, self.method_reason = Method.VBD, f"{self.method_reason}; but only 'vbd' has contact"
         if method is not Method.VBD:
             global_methods.require_global_solvers()
         self.method = method
@@ -155,6 +161,8 @@ class Simulation(SimulationState):
         self.last_iterations = 0
         self.stop_below: Optional[float] = None
         self.reset()
+        self._contact_stage = None
+        self.contact = contact
         self._constructed = True
 
     # -----------------------------------------------------------------------------------------
@@ -186,6 +194,8 @@ class Simulation(SimulationState):
                     break
             else:
                 implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
+        if self._contact_stage is not None:                     # detect at x_n, clamp the guess to the bounds
+            self._contact_stage.begin_step(self.state, self._adjacency[0])
         self._in_step = True
         self._iteration = 0
         self._omega = 1.0
@@ -213,10 +223,14 @@ class Simulation(SimulationState):
             self._iteration += 1
             if s.chebyshev_rho is not None:
                 self._omega = chebyshev_omega(self._iteration, s.chebyshev_rho, self._omega)
-            vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
-                                       self._params, self.n_colors, self.dtype, self._serial_sweep)
-            if s.chebyshev_rho is not None:
-                chebyshev_step(self.state, color_order, self._omega, self.dtype)
+            if self._contact_stage is not None:      # Jacobi contact inside a colour; no Chebyshev where touched
+                self._contact_stage.iterate(self.state, self._mass, self._adjacency, self._params, self.n_colors,
+                                            self.dtype, None if s.chebyshev_rho is None else self._omega)
+            else:
+                vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f,
+                                           color_starts, self._params, self.n_colors, self.dtype, self._serial_sweep)
+                if s.chebyshev_rho is not None:
+                    chebyshev_step(self.state, color_order, self._omega, self.dtype)
             ran += 1
             if s.record_history:
                 self.history.append(IterationRecord(self._iteration, self.energy(), self.max_residual()))
@@ -254,6 +268,8 @@ class Simulation(SimulationState):
         """Solve the vertices of colour c once (part of an iteration; for plots of one colour sweep)."""
         if not self._in_step:
             raise ConfigError("solve_color() needs begin_step() first")
+        if self._contact_stage is not None:
+            raise ConfigError("solve_color() runs the sweep without contact; use run_iterations() with contact")
         if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or not 0 <= c < self.n_colors:
             raise ConfigError(f"colour must be an integer in 0..{self.n_colors - 1}, got {c!r}")
         color_order, offsets, others, adj_f, _ = self._adjacency
@@ -282,13 +298,20 @@ class Simulation(SimulationState):
 
         Damping and friction are not potentials and are not included.
         """
-        return float(energy_kernels.incremental_potential(self.state, self._mass, self._free, self._tets,
-                                                          self._Dm_inv, self._volume, self._params))
+        G = float(energy_kernels.incremental_potential(self.state, self._mass, self._free, self._tets,
+                                                       self._Dm_inv, self._volume, self._params))
+        if self._contact_stage is not None:
+            G += self._contact_stage.energy(self.state, self.dtype)     # + E_c
+        return G
 
     def _local_systems(self) -> float:
         color_order, offsets, others, adj_f, _ = self._adjacency
-        return float(vertex_solve.local_systems(self.state, self._mass, color_order, offsets, others, adj_f,
-                                                self._params, self._f, self._H, self.dtype))
+        largest = float(vertex_solve.local_systems(self.state, self._mass, color_order, offsets, others, adj_f,
+                                                   self._params, self._f, self._H, self.dtype))
+        if self._contact_stage is not None:                      # + the contact pairs' terms
+            largest = self._contact_stage.add_local_systems(self.state, color_order, self._params, self._f,
+                                                            self._H, self.dtype)
+        return largest
 
     def residual(self) -> np.ndarray:
         """(N, 3) float64 per-vertex force residual f_i = -dG/dx_i (0 at fixed/kinematic vertices)."""
@@ -330,21 +353,26 @@ class Simulation(SimulationState):
         return StepProblem(tets=self.mesh.tets, grad_rows=self._grad_rows, volumes=self._rest_vol,
                            masses=self.masses, y=self.inertial_target(), free=self.free_mask.copy(),
                            constrained_positions=targets, h=self.dt, mu=self._material.mu,
-                           lam=self._material.lam, ground=self.ground)
+                           lam=self._material.lam, ground=self.ground, contact=self._contact_term())
 
     def newton_reference(self, tolerance: float = 1e-10, max_iterations: int = 50, x0=None) -> np.ndarray:
         """(N, 3) converged global Newton solution x* of the next step, from the current state.
 
-        x0: (N, 3) start of the Newton iterations (default y); the simulation itself is not changed.
+        x0: (N, 3) start of the Newton iterations (default y; x_n with contact, solved by the numpy
+        `newton_solve`, since y may lie across a body); the simulation itself is not changed.
         To measure a VBD step cheaply, build `problem = sim.step_problem()` before `sim.step()` and
         warm-start `solver.fast_newton_solve(problem, sim.positions)` after it. Solved by the Taichi
         Newton (`global_newton`); `solver.newton_solve` is its independent numpy twin.
         """
         from ..newton.direct import fast_newton_solve
+        from ..newton.oracle import newton_solve
 
         tolerance = positive(tolerance, "tolerance", "(relative)")
         max_iterations = count(max_iterations, "max_iterations")
         problem = self.step_problem()
+        if problem.contact is not None:
+            start = problem.constrained_positions if x0 is None else self._checked_state(x0, "x0")
+            return newton_solve(problem, start, tolerance, max_iterations).x
         start = problem.y_with_constraints() if x0 is None else self._checked_state(x0, "x0")
         return fast_newton_solve(problem, start, tolerance, max_iterations).x
 

@@ -11,7 +11,10 @@ from .._ti import ti
 
 from . import layout as L
 from ..errors import ConfigError
+from ..mesh.bodies import body_labels
 from ..mesh.topology import Topology, grad_rows
+from ..method import Method
+from .contact_state import ContactStage, as_contact
 
 _DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
 
@@ -168,8 +171,57 @@ class SimulationState:
         return self._mass.to_numpy().astype(np.float64)
 
     def set_positions(self, x: np.ndarray) -> None:
-        """Overwrite the positions (N, 3) in metres, e.g. to start from a deformed state."""
-        self._set_rows({L.X: self._checked_state(x, "positions")})
+        """Overwrite the positions (N, 3) in metres, e.g. to start from a deformed state (with contact:
+        bodies that intersect or touch there raise `ConfigError`)."""
+        x = self._checked_state(x, "positions")
+        self._set_rows({L.X: x})
+        if self._contact_stage is not None:
+            self._contact_stage.check_apart(self.state, x)
+
+    # -----------------------------------------------------------------------------------------
+    # Contact between bodies (`contact_state.ContactStage`, issue 17)
+    # -----------------------------------------------------------------------------------------
+    @property
+    def contact(self):
+        """Contact between bodies and within one (a `Contact`), or None; live."""
+        return self._contact
+
+    @contact.setter
+    def contact(self, value):
+        value = as_contact(value)
+        if value is not None and self.method is not Method.VBD:
+            raise ConfigError(f"method={self.method.value!r} has no contact term yet; use method='vbd' with "
+                              "contact (sim.newton_reference() solves the same step with contact)")
+        stage = None if value is None else ContactStage(self.mesh, self.free_mask, value, self.dtype)
+        if stage is not None:
+            stage.check_apart(self.state, self.positions)
+        self._contact, self._contact_stage = value, stage
+
+    @property
+    def bodies(self) -> np.ndarray:
+        """(N,) int32 body of each vertex, bodies numbered by their smallest vertex."""
+        if self._contact_stage is not None:
+            return self._contact_stage.bodies.copy()
+        return body_labels(self.mesh.tets, self.mesh.n_vertices)
+
+    def contact_count(self) -> int:
+        """Contact pairs closer than the radius at the current positions (0 without contact)."""
+        return 0 if self._contact_stage is None else self._contact_stage.count(self.state)
+
+    def min_separation(self) -> float:
+        """Least contact pair distance in m under query_radius at the current positions, else inf."""
+        return float("inf") if self._contact_stage is None else self._contact_stage.min_separation(self.state)
+
+    def _contact_term(self):
+        """The numpy contact term of the Newton reference (`newton.contact_term`), or None."""
+        if self._contact is None:
+            return None
+        if self._contact.friction > 0:
+            raise ConfigError("the Newton reference minimises G, which has no friction; "
+                              "set contact friction=0 to compare against it")
+        from ..newton.contact_term import ContactTerm
+
+        return ContactTerm(self._contact, self.mesh.tets, self.mesh.vertices, self.free_mask)
 
     def set_velocities(self, v: np.ndarray, previous=None) -> None:
         """Overwrite the velocities v_n (N, 3) in m/s. previous: the velocities v_{n-1} (N, 3) of the

@@ -1,0 +1,193 @@
+"""The VBD sweep with contact between bodies (issue 17): each vertex adds its pairs' barrier force and
+block (and friction) to its f_i, H_i; partners may share a colour, so a colour's new positions go to a
+buffer first and are written after (Jacobi inside a colour, VBD [Chen et al. 2024] Sec. 3.9).
+
+For the vertex i in colour slot k:
+
+    f_i, H_i  = inertia + elasticity + damping + ground        (`vertex_solve.force_hessian`)
+              + sum over i's pairs p: -b'(d_p) w_ip n_p,  b''(d_p) w_ip^2 n_p n_p^T   (`contact.py`)
+              + lagged friction of each pair                     (`contact.contact_friction`)
+    x_i      <- x_i + H_i^-1 f_i, then clamped to |x_i - x_det,i| <= b_i
+
+where x_det are the positions of the last detection and b the bounds it computed (OGC's conservative
+bounds, g < 1/2: no two primitives can cross before the next detection). One launch per iteration, and
+with Chebyshev acceleration one more (`chebyshev_contact_step`).
+
+Arrays besides those of `vertex_solve` (P pairs, N vertices): kind (P,) int32 `PairKind`; pair (P,)
+4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex;
+x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at
+every vertex with a pair closer than the radius. k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+"""
+from .._ti import ti
+
+from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
+from .chebyshev import chebyshev_update
+from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV, X_PREV2
+from .vertex_solve import force_hessian, step_limit
+
+
+@ti.func
+def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
+                             incidence_offsets: ti.template(), incidence: ti.template(), k_c, r, mu, eps_u,
+                             dtype: ti.template()):
+    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its pairs at the current x."""
+    f = ti.Vector.zero(dtype, 3)
+    H = ti.Matrix.zero(dtype, 3, 3)
+    active = 0
+    for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
+        p = incidence[s]
+        v = pair[p]
+        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
+        if d < r:
+            w_i = ti.cast(0, dtype)
+            u = ti.Vector.zero(dtype, 3)
+            for j in ti.static(range(4)):
+                if v[j] == i:
+                    w_i = w[j]
+                u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
+            f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
+            f += ti.cast(f_c, dtype)
+            H += ti.cast(H_c, dtype)
+            if mu > 0:
+                db, d2b = barrier_derivatives(d, k_c, r)
+                f_f, H_f = contact_friction(u, n, w_i, -db, mu, eps_u, dtype)
+                f += ti.cast(f_f, dtype)
+                H += ti.cast(H_f, dtype)
+            active += 1
+    return f, H, active
+
+
+@ti.kernel
+def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                          offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                          color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
+                          pair: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
+                          incidence: ti.types.ndarray(), x_det: ti.types.ndarray(), bound: ti.types.ndarray(),
+                          target: ti.types.ndarray(), touched: ti.types.ndarray(), k_c: ti.f64, r: ti.f64,
+                          mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
+                          dtype: ti.template()) -> ti.i32:
+    """One VBD iteration with contact (module docstring); returns how many vertices hit their bound."""
+    hits = 0
+    kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
+    for c in ti.static(range(n_colors)):
+        for k in range(color_starts[c], color_starts[c + 1]):
+            i = color_order[k]
+            f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+            eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
+            f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence, kc,
+                                                        rr, mu_c, eps_u, dtype)
+            f += f_c
+            H += H_c
+            if active > 0:
+                touched[i] = 1
+            dx = ti.Vector.zero(dtype, 3)
+            if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
+                dx = ti.cast(H.inverse() @ f, dtype)
+            if params[KEEP_ORIENTATION] > 0:
+                dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
+            x_new = state[X, i] + dx
+            moved = x_new - x_det[i]
+            length = moved.norm()
+            if length > bound[i]:
+                x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
+                ti.atomic_add(hits, 1)
+            target[i] = x_new
+        for k in range(color_starts[c], color_starts[c + 1]):
+            state[X, color_order[k]] = target[color_order[k]]
+    return hits
+
+
+@ti.kernel
+def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndarray(), touched: ti.types.ndarray(),
+                           x_det: ti.types.ndarray(), bound: ti.types.ndarray(), omega: ti.f64,
+                           dtype: ti.template()) -> ti.i32:
+    """The Chebyshev step (`chebyshev.py`) for the free vertices that have not touched this step (VBD
+    Sec. 3.8: off for the others, whose history only shifts), each clamped to its bound after; returns how
+    many were clamped."""
+    hits = 0
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        if touched[i]:
+            state[X_PREV2, i] = state[X_PREV, i]
+            state[X_PREV, i] = state[X, i]
+        else:
+            chebyshev_update(state, i, ti.cast(omega, dtype))
+            moved = state[X, i] - x_det[i]
+            length = moved.norm()
+            if length > bound[i]:
+                state[X, i] = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
+                state[X_PREV, i] = state[X, i]
+                ti.atomic_add(hits, 1)
+    return hits
+
+
+@ti.kernel
+def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
+                    bound: ti.types.ndarray(), dtype: ti.template()) -> ti.i32:
+    """Clamp every free vertex (slot of `color_order`) to |x_i - x_det,i| <= b_i (the initial guess);
+    returns how many were clamped."""
+    hits = 0
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        moved = state[X, i] - x_det[i]
+        length = moved.norm()
+        if length > bound[i]:
+            state[X, i] = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
+            ti.atomic_add(hits, 1)
+    return hits
+
+
+@ti.kernel
+def largest_move(state: ti.types.ndarray(), row: ti.i32, x_det: ti.types.ndarray()) -> ti.f64:
+    """max_i |state[row, i] - x_det,i| in m over all vertices (fixed and kinematic ones included)."""
+    result = ti.cast(0.0, ti.f64)
+    for i in range(x_det.shape[0]):
+        ti.atomic_max(result, ti.cast((state[row, i] - x_det[i]).norm(), ti.f64))
+    return result
+
+
+@ti.kernel
+def copy_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
+    """out[i] = state[row, i]."""
+    for i in range(out.shape[0]):
+        out[i] = state[row, i]
+
+
+@ti.kernel
+def clear(flags: ti.types.ndarray()):
+    """flags[i] = 0."""
+    for i in range(flags.shape[0]):
+        flags[i] = 0
+
+
+@ti.kernel
+def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.types.ndarray(), n_pairs: ti.i32,
+                   k_c: ti.f64, r: ti.f64, dtype: ti.template()) -> ti.f64:
+    """E_c = sum of b(d) over the first n_pairs pairs at the current x, in J."""
+    E = ti.cast(0.0, ti.f64)
+    for p in range(n_pairs):
+        v = pair[p]
+        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
+        E += barrier(ti.cast(d, ti.f64), k_c, r)
+    return E
+
+
+@ti.kernel
+def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
+                              pair: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
+                              incidence: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
+                              H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
+                              friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
+    """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
+    `vertex_solve.local_systems` filled them); return max_i |f_i| in N."""
+    result = ti.cast(0.0, ti.f64)
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence,
+                                                    ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
+                                                    eps_u, dtype)
+        f_out[i] += f_c
+        H_out[i] += H_c
+        ti.atomic_max(result, ti.cast(f_out[i].norm(), ti.f64))
+    return result

@@ -1,0 +1,252 @@
+"""Contact in the simulation (issue 17, stage 4): the VBD sweep with contact, judged by physics (momentum,
+kinetic energy, rebound), by an independent numpy crossing checker every step, and against the numpy
+Newton reference with contact; bad input in one line."""
+import numpy as np
+import pytest
+
+import solver
+from tests.contact_checks import crossings
+
+pytestmark = pytest.mark.backend
+
+SOFT = solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+
+
+def _cube(origin, size=0.1, cells=1):
+    return solver.box_mesh(size=(size, size, size), cells=(cells, cells, cells), origin=origin)
+
+
+def _judge(sim, self_contact=True):
+    """No surface edge through another's triangle (numpy checker) and every pair apart."""
+    found, _, _ = crossings(sim.positions, sim.mesh.tets, self_contact)
+    assert len(found) == 0, f"{len(found)} edges pass through triangles at t = {sim.time:.3f} s"
+    assert sim.min_separation() > 0
+
+
+def test_head_on_conserves_momentum_gains_no_energy_and_rebounds():
+    a, b = _cube((0.0, 0.0, 0.0), cells=2), _cube((0.13, 0.0, 0.0), cells=2)
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e3, radius=0.01)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 600, gravity=(0, 0, 0), iterations=20, contact=contact)
+    n = a.n_vertices
+    v0 = 1.0
+    v = np.zeros((mesh.n_vertices, 3))
+    v[:n, 0], v[n:, 0] = v0, -v0
+    sim.set_velocities(v)
+    m = sim.masses
+    mv = m[:n].sum() * v0
+    kinetic = [0.5 * np.sum(m * np.sum(v * v, axis=1))]
+    touched = 0
+    for _ in range(36):
+        sim.step()
+        v = sim.velocities
+        assert np.abs((m[:, None] * v).sum(axis=0)).max() <= 1e-3 * mv
+        kinetic.append(0.5 * np.sum(m * np.sum(v * v, axis=1)))
+        assert kinetic[-1] <= 1.01 * kinetic[0], "kinetic energy rose above its start"
+        touched = max(touched, sim.contact_count())
+        _judge(sim)
+    assert touched > 0
+    assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
+
+
+@pytest.mark.parametrize("rho,precision", [(None, "float64"), (0.8, "float64"), (None, "float32")])
+def test_stack_on_a_fixed_slab_never_crosses(rho, precision):
+    slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
+    lower, upper = _cube((0.0, 0.0, 0.006)), _cube((0.02, 0.01, 0.112))
+    mesh = solver.merge_meshes([slab, lower, upper])
+    fixed = np.arange(slab.n_vertices)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=30, chebyshev_rho=rho,
+                            precision=precision, contact=contact)
+    for _ in range(30):
+        sim.step()
+        _judge(sim)
+    assert sim.contact_count() > 0
+    assert sim.positions[slab.n_vertices:, 2].min() > 0, "a cube went through the slab"
+
+
+def _hinged_cubes():
+    """Cube A = [0, 0.1]^3 and cube B = [0.1, 0.2] x [0, 0.1] x [0.1, 0.2], one body joined along the edge
+    x = z = 0.1: folding B about that edge brings its face x = 0.1 down onto A's top face."""
+    a, b = _cube((0.0, 0.0, 0.0)), _cube((0.1, 0.0, 0.1))
+    merged = solver.merge_meshes([a, b])
+    x = merged.vertices
+    key = np.round(x / 1e-9).astype(np.int64)
+    _, first, index = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    keep = np.sort(first)
+    renumber = np.empty(len(first), np.int64)
+    renumber[np.argsort(first)] = np.arange(len(first))
+    return solver.TetMesh(x[keep], renumber[index.ravel()][merged.tets]), a.n_vertices
+
+
+def test_self_contact_fold_never_crosses():
+    mesh, n_a = _hinged_cubes()
+    assert len(np.unique(solver.Simulation(mesh, SOFT).bodies)) == 1
+    hinge = np.array([0.1, 0.0, 0.1])
+    w = np.array([0.0, -12.0, 0.0])                      # rad/s: B turns about the hinge towards A's top
+    fixed = np.arange(n_a)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 120, gravity=(0, 0, 0), fixed=fixed, iterations=30,
+                            contact=contact)
+    v = np.cross(w, mesh.vertices - hinge)
+    v[fixed] = 0.0
+    sim.set_velocities(v)
+    touched = 0
+    for _ in range(30):
+        sim.step()
+        _judge(sim, self_contact=True)
+        touched = max(touched, sim.contact_count())
+    assert touched > 0
+
+
+def test_converged_vbd_matches_newton_reference_with_contact():
+    slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
+    cube = _cube((0.0, 0.0, 0.004))
+    mesh = solver.merge_meshes([slab, cube])
+    fixed = np.arange(slab.n_vertices)
+    contact = solver.Contact(stiffness=1e4, radius=0.005)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=fixed, iterations=400, contact=contact)
+    for _ in range(3):
+        x_n = sim.positions
+        problem = sim.step_problem()
+        x_star = sim.newton_reference()
+        sim.step()
+        assert sim.contact_count() > 0
+        assert solver.relative_error(sim.positions, x_star, x_n) <= 1e-3
+    x = sim.positions + 2e-4 * np.random.default_rng(0).standard_normal(sim.positions.shape) * sim.free_mask[:, None]
+    sim.set_positions(x)                     # G and its gradient with contact away from x*: Taichi against numpy
+    assert sim.energy() == pytest.approx(problem.energy(x), rel=1e-10)
+    g = problem.gradient(x)
+    np.testing.assert_allclose(sim.residual(), -g, rtol=0, atol=1e-9 * np.abs(g).max())
+
+
+def test_bad_contact_input_is_one_line():
+    a, b = _cube((0.0, 0.0, 0.0)), _cube((0.15, 0.0, 0.0))
+    mesh = solver.merge_meshes([a, b])
+    cases = [
+        (lambda: solver.Simulation(mesh, SOFT, contact="on"), "contact must be a solver.Contact"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="newton"), "no contact term"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="pcg"), "no contact term"),
+        (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.05, 0.0, 0.0))]), SOFT,
+                                   contact=solver.Contact()), "bodies 0 and 1 intersect"),
+        (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.1, 0.0, 0.0))]), SOFT,
+                                   contact=solver.Contact()), "bodies 0 and 1 touch"),
+    ]
+    sim = solver.Simulation(mesh, SOFT, contact=solver.Contact(friction=0.3))
+    cases += [(lambda: setattr(sim, "contact", 1.0), "contact must be a solver.Contact"),
+              (lambda: sim.newton_reference(), "no friction"),
+              (lambda: sim.set_positions(np.vstack([a.vertices, a.vertices + 0.02])), "intersect")]
+    for make, match in cases:
+        with pytest.raises(solver.ConfigError, match=match) as err:
+            make()
+        assert "\n" not in str(err.value)
+    frictionless = solver.Simulation(mesh, SOFT, contact=solver.Contact())
+    frictionless.begin_step()
+    with pytest.raises(solver.ConfigError, match="without contact"):
+        frictionless.solve_color(0)
+    frictionless.end_step()
+    with pytest.raises(solver.ConfigError, match="no contact term"):
+        solver.fast_newton_solve(frictionless.step_problem(), frictionless.positions)
+    scenery = solver.merge_meshes([a, _cube((0.1, 0.0, 0.0)), _cube((0.0, 0.0, 0.3))])    # fixed slabs may touch
+    assert len(np.unique(solver.Simulation(scenery, SOFT, fixed=np.arange(2 * a.n_vertices),
+                                           contact=solver.Contact()).bodies)) == 3
+    newton = solver.Simulation(mesh, SOFT, method="newton")
+    with pytest.raises(solver.ConfigError, match="no contact term"):
+        newton.contact = solver.Contact()
+
+
+@pytest.mark.parametrize("mu", [0.8, 0.3])
+def test_friction_on_an_incline_sticks_or_slides_at_coulomb_acceleration(mu):
+    """A cube on a fixed slab under gravity tilted by 30 degrees, converged steps: it sticks for
+    mu > tan 30 (moves < 2 mm in 0.75 s), else slides at g (sin - mu cos) within 10 %."""
+    slab = solver.box_mesh(size=(1.2, 0.3, 0.05), cells=(12, 3, 1), origin=(-0.1, -0.1, -0.05))
+    cube = _cube((0.0, 0.0, 0.0045))
+    mesh = solver.merge_meshes([slab, cube])
+    n = slab.n_vertices
+    theta = np.radians(30.0)
+    gravity = 9.81 * np.array([np.sin(theta), 0.0, -np.cos(theta)])
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=mu)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, gravity=gravity, fixed=np.arange(n), iterations=100,
+                            contact=contact)
+    m = sim.masses[n:]
+    x, v = [], []
+    for _ in range(45):
+        sim.step()
+        assert sim.contact_count() > 0
+        x.append(sim.positions[n:, 0].mean())
+        v.append(m @ sim.velocities[n:, 0] / m.sum())
+    if mu > np.tan(theta):
+        assert abs(x[-1] - x[0]) < 2e-3
+    else:
+        a = (v[-1] - v[14]) / (30 * sim.dt)
+        assert a == pytest.approx(9.81 * (np.sin(theta) - mu * np.cos(theta)), rel=0.1)
+
+
+def test_skipped_detections_never_miss_an_active_pair():
+    """Between detections the sweep uses the last detection's pairs; after every iteration every pair closer
+    than the radius (numpy twin at the current positions) must be among them."""
+    from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+
+    a, b = _cube((0.0, 0.0, 0.0), cells=2), _cube((0.1155, 0.02, 0.01), cells=2)
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e3, radius=0.005, detection_interval=3)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 240, gravity=(0, 0, 0), iterations=10, contact=contact)
+    v = np.zeros((mesh.n_vertices, 3))
+    v[:a.n_vertices, 0], v[a.n_vertices:, 0] = 0.1, -0.1
+    sim.set_velocities(v)
+    stage = sim._contact_stage
+    surface, bodies = stage.detector.surface, stage.bodies
+    excluded = rest_exclusions_np(mesh.vertices, surface, bodies, contact)
+    free = np.ones(mesh.n_vertices, bool)
+    active_seen = 0
+    for _ in range(30):
+        sim.begin_step()
+        for _ in range(10):
+            sim.run_iterations(1)
+            kind, _, primitives, distance = stage.detector.pairs()
+            known = {(int(k), int(p), int(q)) for k, (p, q) in zip(kind, primitives)}
+            kind, _, primitives, distance = find_pairs_np(sim.positions, surface, bodies, free, contact, excluded)
+            active = {(int(k), int(p), int(q)) for k, (p, q), d in zip(kind, primitives, distance)
+                      if d < contact.radius}
+            assert active <= known
+            active_seen = max(active_seen, len(active))
+        sim.end_step()
+    assert active_seen > 0
+
+
+def test_auto_method_picks_vbd_with_contact():
+    mesh = solver.merge_meshes([_cube((0.0, 0.0, 0.0)), _cube((0.15, 0.0, 0.0))])
+    stiff = solver.Material(youngs_modulus=1e9, poisson_ratio=0.3, density=1000.0)
+    assert solver.Simulation(mesh, stiff, method="auto").method is solver.Method.MULTILEVEL
+    sim = solver.Simulation(mesh, stiff, method="auto", contact=solver.Contact())
+    assert sim.method is solver.Method.VBD and "contact" in sim.method_reason
+
+
+def test_pile_of_eight_cubes_in_a_fixed_open_box_settles_in_two_layers():
+    """Acceptance 4 with cubes for balls: 8 soft cubes (two layers of 2 x 2) dropped into an open box of five
+    fixed slabs, friction 0.3. Every step: no edge of a cube through a triangle (numpy checker), gaps > 0, no
+    cube out of the box; after 1.5 s two layers rest, mean speed < 0.1 m/s."""
+    W, T, H, s, gap = 0.3, 0.02, 0.25, 0.08, 0.006
+    walls = [solver.box_mesh(size=(W + 2 * T, W + 2 * T, T), cells=(3, 3, 1), origin=(-T, -T, -T)),
+             solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, 3, 2), origin=(-T, -T, gap)),
+             solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, 3, 2), origin=(W, -T, gap)),
+             solver.box_mesh(size=(W - 2 * gap, T, H), cells=(3, 1, 2), origin=(gap, -T, gap)),
+             solver.box_mesh(size=(W - 2 * gap, T, H), cells=(3, 1, 2), origin=(gap, W, gap))]
+    cubes = [_cube((0.04 + 0.14 * i + 0.01 * k, 0.04 + 0.14 * j, 0.01 + 0.1 * k), size=s)
+             for k in range(2) for i in range(2) for j in range(2)]
+    mesh = solver.merge_meshes(walls + cubes)
+    n_walls = sum(w.n_vertices for w in walls)
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=np.arange(n_walls), iterations=20, contact=contact)
+    for _ in range(90):
+        sim.step()
+        found, edges, triangles = crossings(sim.positions, mesh.tets)
+        moving = (edges[found[:, 0]] >= n_walls).any(axis=1) | (triangles[found[:, 1]] >= n_walls).any(axis=1)
+        assert not moving.any(), f"a cube edge passes through a triangle at t = {sim.time:.3f} s"
+        assert sim.min_separation() > 0
+        x = sim.positions[n_walls:]
+        assert (x[:, :2] > 0).all() and (x[:, :2] < W).all() and (x[:, 2] > 0).all(), "a cube left the box"
+    heights = np.sort(x.reshape(8, -1, 3).mean(axis=1)[:, 2])
+    np.testing.assert_allclose(heights[:4], s / 2, atol=0.01)          # on the floor
+    np.testing.assert_allclose(heights[4:], 3 * s / 2, atol=0.02)      # on the lower cubes
+    assert np.linalg.norm(sim.velocities[n_walls:], axis=1).mean() < 0.1
