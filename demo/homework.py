@@ -162,18 +162,26 @@ TASKS = (
         chapter="lecture_notes/05-information-propagation.md",
         functions=("exercises/analysis.py:dF_dx", "exercises/analysis.py:hessian_eigenvalues",
                    "exercises/analysis.py:iterations_needed", "exercises/analysis.py:rho_residuals",
-                   "exercises/analysis.py:best_rho"),
+                   "exercises/analysis.py:best_rho", "exercises/analysis.py:jacobi_against_coloring"),
         what={"dF_dx": "the constant 9x3 matrix d vec(F) / d x_i of one tet",
               "hessian_eigenvalues": "the three eigenvalues of one tet's H_i in closed form",
               "iterations_needed": "count the VBD iterations until max |f_i| drops by REDUCTION",
               "rho_residuals": "max |f_i| after RHO_ITERATIONS accelerated iterations for every rho of RHO_GRID",
-              "best_rho": "the best rho of RHO_GRID by rho_residuals"},
+              "best_rho": "the best rho of RHO_GRID by rho_residuals",
+              "jacobi_against_coloring": "max |f_i| after JACOBI_ITERATIONS iterations of plain and "
+                                         "under-relaxed Jacobi (numpy, from sim.local_systems()) and of the "
+                                         "coloured sweep"},
         depends=("force_hessian", "coloring", "vbd_sweep", "chebyshev"),
         details="In `exercises/analysis.py`: derive and return the constant matrix dF/dx_i (why J is affine "
                 "in x_i, chapter 3) and the eigenvalues of H_i in closed form (why H_i is SPD); then measure "
-                "with your solver how many iterations a step needs as E grows (compare with N_c, chapter 5) "
-                "and which Chebyshev rho works best (chapter 6). The derivations are checked against finite "
-                "differences, the measurements against the project's own within a tolerance.",
+                "with your solver what the colouring buys (the same vertex solves without colours: Jacobi, "
+                "every vertex at once from the same positions, written by you in numpy from "
+                "`sim.local_systems()`, plain and under-relaxed, against the coloured sweep, chapter 4), "
+                "how many iterations a step needs as E grows (compare with N_c, chapter 5) and which "
+                "Chebyshev rho works best (chapter 6). The derivations are checked against finite "
+                "differences, the measurements against the project's own within a tolerance, and the "
+                "Jacobi measurement also for what chapter 4 finds: plain Jacobi grows or stalls far above "
+                "the coloured sweep, and under-relaxed Jacobi converges, but more slowly.",
     ),
 )
 
@@ -224,7 +232,8 @@ def write_references(path: Path, root: Path = REPO_ROOT) -> None:
 
 def measurements(root: Path = REPO_ROOT) -> dict:
     """Task 5's measurements made with `root`'s `exercises/analysis.py`: {"iterations_needed": (3,)
-    counts for analysis.YOUNGS_MODULI, "rho_residuals": (6,) newtons for analysis.RHO_GRID}."""
+    counts for analysis.YOUNGS_MODULI, "rho_residuals": (6,) newtons for analysis.RHO_GRID,
+    "jacobi_against_coloring": (4,) newtons for analysis.JACOBI_KEYS}."""
     import importlib.util
 
     import numpy as np
@@ -232,9 +241,10 @@ def measurements(root: Path = REPO_ROOT) -> dict:
     spec = importlib.util.spec_from_file_location("_solution_analysis", root / "exercises" / "analysis.py")
     analysis = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(analysis)
-    residuals = analysis.rho_residuals()
+    residuals, sweeps = analysis.rho_residuals(), analysis.jacobi_against_coloring()
     return {"iterations_needed": np.array([analysis.iterations_needed(E) for E in analysis.YOUNGS_MODULI]),
-            "rho_residuals": np.array([residuals[rho] for rho in analysis.RHO_GRID])}
+            "rho_residuals": np.array([residuals[rho] for rho in analysis.RHO_GRID]),
+            "jacobi_against_coloring": np.array([sweeps[key] for key in analysis.JACOBI_KEYS])}
 
 
 def _error(message):

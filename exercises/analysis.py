@@ -2,13 +2,17 @@
 
 Derivations (lecture notes, chapter 3): why J = det F is affine in x_i (F is linear in x_i with a
 constant derivative), and why every tet's H_i is symmetric positive definite (its eigenvalues in
-closed form). Measurements (chapters 5 and 6): how many VBD iterations a step needs as the material
-stiffens (N_c = h sqrt(E / rho) / dx grows), and which Chebyshev rho works best.
+closed form). Measurements (chapters 4, 5 and 6): what the colouring buys (the same vertex solves
+without colours, Jacobi, against the coloured sweep), how many VBD iterations a step needs as the
+material stiffens (N_c = h sqrt(E / rho) / dx grows), and which Chebyshev rho works best.
 
 The measurements run on `BAR`, the cantilever `REFERENCE_CASES["stiff_long_bar"]` of demo/homework.py
 (16 x 2 x 2 cubes, 0.8 m long), with the solver you built in tasks 1-4: `BAR.simulation(**settings)`
 makes one, `sim.begin_step()` starts its first step, `sim.run_iterations(1)` runs one VBD iteration
-and `sim.max_residual()` gives max_i |f_i| in newtons (solver/vbd/simulation.py).
+and `sim.max_residual()` gives max_i |f_i| in newtons (solver/vbd/simulation.py);
+`sim.local_systems()` gives every vertex's f_i (N, 3) and H_i (N, 3, 3) at the current positions,
+`sim.positions` a copy of x (N, 3), `sim.set_positions(x)` writes it back and `sim.free_mask` (N,)
+marks the vertices that are solved (f_i and H_i are zero at the pinned ones).
 """
 from dataclasses import replace
 
@@ -22,6 +26,9 @@ REDUCTION = 1e-3                            # iterate until max_i |f_i| <= REDUC
 MAX_ITERATIONS = 3000
 RHO_GRID = (0.5, 0.7, 0.8, 0.9, 0.95, 0.98)  # Chebyshev rho candidates, for `best_rho`
 RHO_ITERATIONS = 60
+JACOBI_ITERATIONS = 50                      # iterations of each sweep, for `jacobi_against_coloring`
+UNDER_RELAXATION = 0.5                      # omega of the under-relaxed Jacobi sweep
+JACOBI_KEYS = ("start", "jacobi", "under_relaxed", "vbd")
 
 
 def dF_dx(m: np.ndarray) -> np.ndarray:
@@ -81,4 +88,36 @@ def best_rho() -> float:
     # BEGIN SOLUTION task=analysis
     measured = rho_residuals()
     return min(measured, key=measured.get)
+    # END SOLUTION
+
+
+def jacobi_against_coloring() -> dict:
+    """What the colouring buys (chapter 4): max_i |f_i| in newtons after JACOBI_ITERATIONS iterations of
+    the first step of `BAR` (E = BAR.youngs_modulus), as {"start": before any iteration, "jacobi": plain
+    Jacobi, "under_relaxed": Jacobi with omega = UNDER_RELAXATION, "vbd": the coloured sweep}; infinity
+    where the positions stop being finite.
+
+    One Jacobi iteration solves every free vertex's 3x3 system H_i dx_i = f_i at once, all from the same
+    positions (`sim.local_systems()`), then moves every free vertex by omega dx_i; omega = 1 is plain
+    Jacobi. The coloured sweep is `sim.run_iterations`, which solves the colours one after the other."""
+    # BEGIN SOLUTION task=analysis
+    residuals = {}
+    for key, omega in (("jacobi", 1.0), ("under_relaxed", UNDER_RELAXATION)):
+        bar = BAR.simulation(iterations=JACOBI_ITERATIONS)
+        bar.begin_step()
+        residuals["start"] = bar.max_residual()
+        free = bar.free_mask
+        for _ in range(JACOBI_ITERATIONS):
+            f_i, H_i = bar.local_systems()
+            x = bar.positions
+            x[free] = x[free] + omega * np.linalg.solve(H_i[free], f_i[free][:, :, np.newaxis])[:, :, 0]
+            if not np.all(np.isfinite(x)):
+                break
+            bar.set_positions(x)
+        residuals[key] = bar.max_residual() if np.all(np.isfinite(x)) else np.inf
+    bar = BAR.simulation(iterations=JACOBI_ITERATIONS)
+    bar.begin_step()
+    bar.run_iterations(JACOBI_ITERATIONS)
+    residuals["vbd"] = bar.max_residual()
+    return residuals
     # END SOLUTION

@@ -1,4 +1,4 @@
-"""Task analysis: derivations checked numerically, measurements checked against the solution's (chapters 3, 5, 6)."""
+"""Task analysis: derivations checked numerically, measurements checked against the solution's (chapters 3-6)."""
 import numpy as np
 import pytest
 
@@ -89,3 +89,22 @@ def test_choosing_rho():
     rho = best_rho()
     assert rho in RHO_GRID and expected[RHO_GRID.index(rho)] <= 1.5 * expected[finite].min(), \
         f"rho = {rho} is not among the best of RHO_GRID"
+
+
+def test_jacobi_against_the_coloured_sweep():
+    require("analysis")
+    from exercises.analysis import JACOBI_KEYS, jacobi_against_coloring
+
+    expected = dict(zip(JACOBI_KEYS, stored("jacobi_against_coloring")))
+    measured = jacobi_against_coloring()
+    missing = [key for key in JACOBI_KEYS if key not in measured]
+    assert not missing, f"jacobi_against_coloring must return the keys {list(JACOBI_KEYS)}; missing {missing}"
+    got = {key: float(measured[key]) for key in JACOBI_KEYS}
+    assert got["jacobi"] >= got["start"] or got["jacobi"] >= 10 * got["vbd"], \
+        f"plain Jacobi: {got['jacobi']:.3g} N, below its start and near the coloured sweep; all vertices from the same x?"
+    assert got["vbd"] < got["under_relaxed"] < got["start"], \
+        (f"under-relaxed Jacobi: {got['under_relaxed']:.3g} N from {got['start']:.3g} N (coloured: {got['vbd']:.3g} N); "
+         "it should converge, more slowly than the colouring")
+    off = [key for key in JACOBI_KEYS if not np.isclose(got[key], expected[key], rtol=0.05)]
+    assert not off, "jacobi_against_coloring: " + ", ".join(
+        f"{key} {got[key]:.3g} N, the solution measures {expected[key]:.3g} N" for key in off)
