@@ -602,9 +602,9 @@ def main(argv=None):
     for name in selected:
         if name == "excerpts":
             continue
-        import solver
+        from .cli import start_taichi
 
-        solver.ensure_taichi("cpu")
+        start_taichi("cpu")
         t = time.perf_counter()
         before = notes_sync.snapshot(out)
         numbers.update(SECTIONS[name](out, args.full, (width, height)))
