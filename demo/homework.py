@@ -139,9 +139,9 @@ TASKS = (
                                  "its stored data (adj_f[e][M_SQ] = |m|^2, adj_f[e][VOLUME] = rest volume, "
                                  "solver/vbd/layout.py); tet_kinematics (above) turns them into the F m, J and "
                                  "w that vertex_force_hessian (task 1) takes."],
-               "newton_step": ["force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, "
-                               "dtype) gives f, H; define dx (3-vector of type dtype), which the line after "
-                               "the region returns."]},
+               "newton_step": ["f (3-vector) and H (3x3) are the vertex's force and Hessian from "
+                               "force_hessian; define dx (3-vector of type dtype), which the line after the "
+                               "region returns. Both sweeps (with and without contact) call this function."]},
     ),
     Task(
         id="chebyshev", title="Chebyshev acceleration", points=15,

@@ -22,8 +22,8 @@ from .._ti import ti
 
 from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
 from .chebyshev import chebyshev_update
-from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV, X_PREV2
-from .vertex_solve import force_hessian, step_limit
+from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV
+from .vertex_solve import force_hessian, newton_step, step_limit
 
 
 @ti.func
@@ -80,9 +80,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
             H += H_c
             if active > 0:
                 touched[i] = 1
-            dx = ti.Vector.zero(dtype, 3)
-            if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
-                dx = ti.cast(H.inverse() @ f, dtype)
+            dx = newton_step(f, H, dtype)
             if params[KEEP_ORIENTATION] > 0:
                 dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
             x_new = state[X, i] + dx
@@ -108,8 +106,7 @@ def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndar
     for k in range(color_order.shape[0]):
         i = color_order[k]
         if touched[i]:
-            state[X_PREV2, i] = state[X_PREV, i]
-            state[X_PREV, i] = state[X, i]
+            chebyshev_update(state, i, ti.cast(1.0, dtype))     # omega = 1: x stays, the history shifts
         else:
             chebyshev_update(state, i, ti.cast(omega, dtype))
             moved = state[X, i] - x_det[i]

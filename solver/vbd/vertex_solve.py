@@ -116,12 +116,10 @@ def step_limit(state: ti.template(), others: ti.template(), adj_f: ti.template()
 
 
 @ti.func
-def newton_step(state: ti.template(), mass: ti.template(), color_order: ti.template(), offsets: ti.template(),
-                others: ti.template(), adj_f: ti.template(), params: ti.template(), k, dtype: ti.template()):
-    """dx = H_i^-1 f_i, the 3x3 Newton step of the vertex in colour slot k, or 0 for a (near)
-    singular H_i (VBD Alg. 1, lines 7-10)."""
+def newton_step(f, H, dtype: ti.template()):
+    """dx = H_i^-1 f_i, the 3x3 Newton step of a vertex with force f_i (3,) and Hessian H_i (3x3), or 0
+    for a (near) singular H_i (VBD Alg. 1, lines 7-10)."""
     # BEGIN SOLUTION task=vbd_sweep
-    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     dx = ti.Vector.zero(dtype, 3)
     if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
         dx = ti.cast(H.inverse() @ f, dtype)
@@ -135,7 +133,8 @@ def solve_vertex(state: ti.template(), mass: ti.template(), color_order: ti.temp
     """x_i <- x_i + dx for the vertex i in colour slot k, the step shortened by `step_limit` when the
     simulation keeps tets from inverting."""
     i = color_order[k]
-    dx = newton_step(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    dx = newton_step(f, H, dtype)
     if params[KEEP_ORIENTATION] > 0:
         dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
     state[X, i] += dx
