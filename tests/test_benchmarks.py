@@ -282,7 +282,6 @@ def test_the_readme_says_what_each_benchmark_writes(name):
     assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
 
 
-@pytest.mark.slow
 @pytest.mark.backend
 def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0

@@ -22,7 +22,6 @@ def one_line_error(capsys, argv, match):
 
 
 @pytest.mark.backend
-@pytest.mark.slow
 def test_render_writes_frames_video_and_meshes(tmp_path, capsys):
     out = tmp_path / "sweep"
     argv = ["render", "stiffness_sweep", "--frames", "3", "--size", "64x48", "--out", str(out),
@@ -121,7 +120,6 @@ def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tm
     assert "[Taichi]" not in rendered.stdout + rendered.stderr, rendered.stderr
 
 
-@pytest.mark.slow
 def test_arch_gpu_without_a_gpu_warns_once_in_one_line(tmp_path):
     from solver import _ti as shim
 

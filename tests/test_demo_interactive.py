@@ -54,7 +54,6 @@ def test_help_line_and_frames_do_not_pile_up(app):
     np.testing.assert_allclose(app.image(), first, atol=1e-6)
 
 
-@pytest.mark.slow
 def test_controls(app):
     app.playing = False
     app.reset()
@@ -162,6 +161,7 @@ def test_no_display_gives_a_hint_instead_of_ending_the_process(monkeypatch, disp
     assert "xvfb-run" in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.slow
 def test_window_start_compiles_without_precision_warnings(app):
     """GGUI's default normals and RGB colours compile float64 literals into float32 fields."""
     code = ("from demo.interactive import InteractiveApp\n"

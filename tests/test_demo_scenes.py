@@ -36,7 +36,8 @@ def test_unknown_scene_is_a_demo_error():
         scenes.get("nope")
 
 
-@pytest.mark.parametrize("name", sorted(scenes.SCENES))
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "real_shapes" else n
+                                  for n in sorted(scenes.SCENES)])            # real_shapes: 8 s
 def test_every_scene_builds_and_steps(name):
     runner = SceneRunner(scenes.get(name))
     for p in runner.panels:
@@ -55,7 +56,6 @@ def test_every_scene_builds_and_steps(name):
         assert max(np.abs(s.positions - x0).max() for s, x0 in zip(states, rest)) > 1e-6
 
 
-@pytest.mark.slow
 def test_scene_builds_only_what_it_asks_for():
     sweep = SceneRunner(scenes.get("stiffness_sweep"))
     sim = sweep.panels[0].sim
@@ -63,7 +63,6 @@ def test_scene_builds_only_what_it_asks_for():
     assert SceneRunner(scenes.get("drop")).panels[0].sim.ground is not None
 
 
-@pytest.mark.slow
 def test_stiffness_sweep_shows_the_stiff_bar_failing():
     """The lecture's point, measured: with the same 20 iterations the soft bar follows its converged
     implicit-Euler ghost, while the stiff bar's step error is large and it sags far below its ghost."""
@@ -86,7 +85,6 @@ def test_stiffness_sweep_shows_the_stiff_bar_failing():
     assert panel.reference.frame == panel.sim.frame == 12
 
 
-@pytest.mark.slow
 def test_everything_stays_in_frame():
     """Projected into its viewport, every scene's body stays inside the picture over the first frames."""
     from demo.compose import FrameComposer
@@ -181,7 +179,6 @@ def test_propagation_front_moves_with_iterations():
     assert reach[-1] < 0.5
 
 
-@pytest.mark.slow
 def test_ghost_switched_back_on_restarts_from_the_body():
     """With the ghost off for a while (the figures do this to save time), the reference restarts from the
     body's state, so its first ghost is the converged solution x* of that step."""
@@ -224,7 +221,6 @@ def test_coloring_scene_needs_only_the_coloring():
     np.testing.assert_array_equal(state.rgb[pinned], np.tile(FIXED_RGB, (pinned.sum(), 1)))
 
 
-@pytest.mark.slow
 def test_remedy_scene_converges_where_plain_vbd_does_not():
     """The remedy scene: two-level VBD and plain VBD on the stiff bar, plain VBD given the remedy's wall
     time per step in iterations. Plain VBD's step error stays large, the two-level one's is far lower;

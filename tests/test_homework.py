@@ -495,7 +495,6 @@ BUGS = [
 ]
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("task, file, right, wrong, words", BUGS, ids=[f"{b[0]}-{n}" for n, b in enumerate(BUGS)])
 def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path, task, file, right, wrong, words):
     """Each bug (one per task, and one per term of f_i and H_i) loses points in its own task only, and the

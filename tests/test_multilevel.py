@@ -165,6 +165,7 @@ def test_bad_settings_raise_config_errors():
         TwoLevelVBD(sim).step()
 
 
+@pytest.mark.slow
 def test_benchmark_quick_mode_writes_curves_and_refuses_to_overwrite(tmp_path):
     import subprocess
     import sys

@@ -61,7 +61,6 @@ def test_newton_converges_quadratically_to_a_tight_tolerance(problem):
     assert any(b < a ** 1.5 for a, b in zip(rel, rel[1:]) if a < 1e-2)
 
 
-@pytest.mark.slow
 def test_newton_refuses_damping_and_friction():
     mesh = solver.box_mesh(cells=(3, 1, 1))
     sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), damping=0.1, iterations=1)

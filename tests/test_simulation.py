@@ -31,7 +31,6 @@ def deformed(sim, seed=0, scale=0.02):
     return x
 
 
-@pytest.mark.slow
 def test_residual_is_minus_the_gradient_of_G_and_H_its_derivative():
     sim = cantilever(1e5, initial_guess=solver.InitialGuess.PREVIOUS)
     sim.set_velocities(0.1 * np.ones((sim.mesh.n_vertices, 3)))
@@ -55,7 +54,6 @@ def test_residual_is_minus_the_gradient_of_G_and_H_its_derivative():
     assert (f[sim.fixed_mask] == 0).all()
 
 
-@pytest.mark.slow
 def test_local_energy_is_exactly_quadratic_so_one_solve_minimises_it():
     sim = cantilever(1e5, initial_guess=solver.InitialGuess.PREVIOUS)
     sim.begin_step()
@@ -75,7 +73,6 @@ def test_local_energy_is_exactly_quadratic_so_one_solve_minimises_it():
     assert np.linalg.norm(sim.residual()[i]) < 1e-9 * np.linalg.norm(f[i])
 
 
-@pytest.mark.slow
 def test_zero_force_at_rest_and_under_rigid_motion():
     sim = cantilever(1e6, gravity=(0, 0, 0), initial_guess=solver.InitialGuess.PREVIOUS)
     c, s = np.cos(0.7), np.sin(0.7)
@@ -113,7 +110,6 @@ def test_vbd_converges_to_the_newton_solution_at_1e4_pa():
     assert err < 1e-6
 
 
-@pytest.mark.slow
 def test_stiff_bar_is_far_from_newton_where_the_soft_bar_is_close():
     """The lecture's point: the same settings that work at 1e4 Pa fail at 1e6 Pa."""
     errors = {}
@@ -141,7 +137,6 @@ def test_more_iterations_reduce_the_error_monotonically():
     assert all(b < a for a, b in zip(errors, errors[1:]))
 
 
-@pytest.mark.slow
 def test_fixed_vertices_are_held_and_velocity_is_the_position_change():
     sim = cantilever(1e4, iterations=5)
     x0 = sim.positions
@@ -156,7 +151,6 @@ def test_fixed_vertices_are_held_and_velocity_is_the_position_change():
     assert sim.positions[~sim.fixed_mask, 2].mean() < x0[~sim.fixed_mask, 2].mean(), "the bar sags"
 
 
-@pytest.mark.slow
 def test_initial_guesses():
     results = {}
     for guess in solver.InitialGuess:
@@ -175,7 +169,6 @@ def test_initial_guesses():
     np.testing.assert_allclose(results[solver.InitialGuess.ADAPTIVE], results[solver.InitialGuess.INERTIAL])
 
 
-@pytest.mark.slow
 def test_adaptive_guess_scales_gravity_by_the_measured_acceleration():
     """a~ = clamp(a_n . g / |g|^2, 0, 1) with a_n = (v_n - v_{n-1}) / h (VBD Sec. 3.7)."""
     g = np.array([0.0, 0.0, -9.81])
@@ -192,7 +185,6 @@ def test_adaptive_guess_scales_gravity_by_the_measured_acceleration():
         sim.end_step()
 
 
-@pytest.mark.slow
 def test_chebyshev_acceleration_lowers_the_error_for_the_same_iterations():
     errors = {}
     for rho in (None, 0.9):
@@ -206,7 +198,6 @@ def test_chebyshev_acceleration_lowers_the_error_for_the_same_iterations():
     assert errors[0.9] < 0.5 * errors[None]
 
 
-@pytest.mark.slow
 def test_tolerance_stops_early_and_history_records_each_iteration():
     sim = cantilever(1e4, iterations=500, tolerance=1e-6, check_every=3, record_history=True,
                      initial_guess=solver.InitialGuess.INERTIAL)
@@ -221,14 +212,12 @@ def test_tolerance_stops_early_and_history_records_each_iteration():
     sim.end_step()
 
 
-@pytest.mark.slow
 def test_a_step_that_starts_converged_stops_at_the_first_check():
     sim = cantilever(1e4, iterations=100, tolerance=1e-3, check_every=1, gravity=(0, 0, 0))
     sim.step()
     assert sim.last_iterations == 1
 
 
-@pytest.mark.slow
 def test_damping_removes_energy_from_a_vibrating_bar():
     amplitude = {}
     for k_d in (0.0, 0.01):
@@ -239,7 +228,6 @@ def test_damping_removes_energy_from_a_vibrating_bar():
     assert amplitude[0.01] < 0.7 * amplitude[0.0]
 
 
-@pytest.mark.slow
 def test_a_dropped_box_rests_on_the_ground():
     mesh = solver.box_mesh(size=(0.2, 0.2, 0.2), cells=(3, 3, 3), origin=(0, 0, 0.05))
     ground = solver.Ground(height=0.0, stiffness=1e5, friction=0.5)
@@ -251,7 +239,6 @@ def test_a_dropped_box_rests_on_the_ground():
     assert np.isfinite(sim.positions).all()
 
 
-@pytest.mark.slow
 def test_kinematic_vertices_follow_their_script():
     mesh = bar()
     left = mesh.vertices[:, 0] < 1e-9
@@ -269,7 +256,6 @@ def test_kinematic_vertices_follow_their_script():
     assert 0 < (sim.positions[middle, 0] - 0.5).mean() < 0.1 * 6 * H, "the bar stretches in between"
 
 
-@pytest.mark.slow
 def test_newton_reference_is_unchanged_by_kinematic_scripts_and_matches_vbd():
     mesh = bar((6, 2, 2))
     right = mesh.vertices[:, 0] > 1.0 - 1e-9
@@ -281,7 +267,6 @@ def test_newton_reference_is_unchanged_by_kinematic_scripts_and_matches_vbd():
     assert solver.relative_error(sim.positions, x_star, x_n) < 1e-6
 
 
-@pytest.mark.slow
 def test_float32_agrees_with_float64():
     x = {}
     for precision in ("float64", "float32"):
@@ -295,7 +280,6 @@ def test_float32_agrees_with_float64():
     assert 0 < error < 1e-3 * disp                                            # float32 really ran
 
 
-@pytest.mark.slow
 def test_set_material_and_dt_take_effect_without_rebuilding():
     sim = cantilever(1e4, iterations=100, initial_guess=solver.InitialGuess.INERTIAL)
     sim.set_material(solver.Material(1e5, 0.3, 500.0))
@@ -322,7 +306,6 @@ def test_nonsense_parameters_raise_config_error(kwargs, match):
         solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), **kwargs)
 
 
-@pytest.mark.slow
 def test_bad_states_and_call_order_raise_config_error():
     sim = cantilever(1e4)
     with pytest.raises(solver.ConfigError, match="shape"):
@@ -335,7 +318,6 @@ def test_bad_states_and_call_order_raise_config_error():
         solver.Ground(stiffness=-1.0)
 
 
-@pytest.mark.slow
 def test_importing_does_not_initialise_taichi_and_gpu_falls_back_with_one_warning():
     code = (
         "import warnings, solver\n"
