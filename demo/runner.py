@@ -97,7 +97,7 @@ class PanelSim:
             damping=scene.damping, ground=scene.ground,
             kinematic=kinematic if kinematic.any() else None,
             kinematic_motion=panel.motion if kinematic.any() else None, keep_orientation=panel.keep_orientation,
-            method=panel.method, arch=arch)
+            method=panel.method, contact=panel.contact, arch=arch)
         self.sim = solver.Simulation(**self._settings)
         self.scene_settings = self.settings
         self.rest = mesh.vertices
@@ -112,6 +112,8 @@ class PanelSim:
 
     def reset(self):
         self.sim.reset()
+        if self.panel.velocity is not None:
+            self.sim.set_velocities(self.panel.velocity(self.sim.bodies))
         if self.reference is not None:
             self.reference.reset()
         self.reference_synced = self.reference is not None
@@ -459,11 +461,23 @@ class PanelSim:
             lines.append(self._probe_line())
         if self.panel.show_inverted:
             lines.append(f"inverted tets: {self.sim.inverted_count()}")
+        contact = [self._contact_line()] if self.panel.contact is not None else []
+        if self.panel.show_momentum:     # on the contact line: a panel's label has three rows
+            p = self.sim.masses @ self.sim.velocities
+            contact.append(f"momentum |sum m v| = {np.linalg.norm(p):.1e} kg m/s")
+        if contact:
+            lines.append("; ".join(contact))
         lines += self.remarks()
         converged = self.error_converged and (self.ghost is None or self.ghost_converged)
         return PanelState(x, self.faces, rgb, self.ghost, lines, self.error, gap, gap_fraction=fraction,
                           budget=self.budget_line(), step_ms=self.step_ms(), newton_converged=converged,
                           wave_cells=wave_cells, probe_moved_at=self.probe_moved_at)
+
+    def _contact_line(self):
+        """The contact pairs closer than the radius and the closest pair's distance (under the query radius)."""
+        gap = self.sim.min_separation()
+        shown = f"closest gap {1000 * gap:.2f} mm" if np.isfinite(gap) else "nothing within the query radius"
+        return f"contacts: {self.sim.contact_count()}, {shown}"
 
     def _colour_line(self):
         n = self.sim.n_colors

@@ -92,6 +92,45 @@ class AssetMesh:
 
 
 @dataclass(frozen=True)
+class Bodies:
+    """Several meshes as one ``solver.merge_meshes`` mesh, each moved by its offset (m); place them apart."""
+
+    meshes: tuple
+    offsets: tuple
+
+    def build(self):
+        built = [m.build() for m in self.meshes]
+        return solver.merge_meshes([solver.TetMesh(m.vertices + np.asarray(o, float), m.tets)
+                                    for m, o in zip(built, self.offsets)])
+
+
+@dataclass(frozen=True)
+class Outside:
+    """The vertices not strictly inside the box [lower, upper] (m): the walls around a scene's bodies."""
+
+    lower: tuple = (0.0, 0.0, 0.0)
+    upper: tuple = (1.0, 1.0, np.inf)
+
+    def select(self, vertices):
+        inside = (vertices > np.asarray(self.lower)) & (vertices < np.asarray(self.upper))
+        return ~inside.all(axis=1)
+
+
+@dataclass(frozen=True)
+class Approach:
+    """Initial velocities: body 0 moves at +speed (m/s) along ``axis``, every other body at -speed."""
+
+    speed: float = 1.0
+    axis: int = 0
+
+    def __call__(self, bodies):
+        """(N, 3) velocities in m/s for the (N,) body number of each vertex."""
+        v = np.zeros((len(bodies), 3))
+        v[:, self.axis] = np.where(bodies == 0, self.speed, -self.speed)
+        return v
+
+
+@dataclass(frozen=True)
 class EndFace:
     """The vertices on the lowest or highest face of the body along an axis (0 = x)."""
 
@@ -121,6 +160,20 @@ class Twist:
         out = rest.copy()
         out[:, u] = centre[u] + np.cos(angle) * du - np.sin(angle) * dv
         out[:, v] = centre[v] + np.sin(angle) * du + np.cos(angle) * dv
+        return out
+
+
+@dataclass(frozen=True)
+class Coil(Twist):
+    """Scripted motion: a ``Twist`` whose two ends also move towards each other, each at ``approach`` (m/s)
+    along the axis, so that the twisted bar buckles and coils onto itself."""
+
+    approach: float = 0.1
+
+    def __call__(self, t, rest):
+        out = Twist.__call__(self, t, rest)
+        centre = rest[:, self.axis].mean()
+        out[:, self.axis] -= np.sign(rest[:, self.axis] - centre) * self.approach * t
         return out
 
 
@@ -159,6 +212,9 @@ class Panel:
     show_wave_cells: bool = False  # label N_c = h sqrt(E / rho) / dx, the cells an elastic wave crosses per step
     sweep: Sweep = Sweep.GAUSS_SEIDEL
     probe: tuple = ()              # selectors of the vertices whose one nearest the camera is highlighted and watched
+    contact: solver.Contact = None     # solver.Simulation(contact=...): contact between bodies; labels its pairs
+    velocity: object = None        # callable(bodies (N,)) -> (N, 3) initial velocities in m/s, e.g. Approach
+    show_momentum: bool = False    # label the total momentum |sum m v| (kg m/s)
 
 
 @dataclass(frozen=True)
@@ -376,6 +432,68 @@ SCENES = {scene.name: scene for scene in [
     ),
 ]}
 
+
+# contact between bodies (lecture notes chapter 8): balls of radius 0.1 m voxelised from the sphere asset
+BALL = AssetMesh("assets/sphere.obj", resolution=5)
+BALL_R = 0.1
+PILE_W, PILE_T, PILE_H, PILE_GAP = 0.45, 0.03, 0.35, 0.006   # m: box inside width, wall thickness, wall height,
+#                                                           the walls' clearance off the floor (bodies may not touch)
+PILE_WALLS = (BoxMesh(size=(PILE_W + 2 * PILE_T, PILE_W + 2 * PILE_T, PILE_T), cells=(3, 3, 1),
+                      origin=(-PILE_T, -PILE_T, -PILE_T)),
+              BoxMesh(size=(PILE_T, PILE_W + 2 * PILE_T, PILE_H), cells=(1, 3, 2), origin=(-PILE_T, -PILE_T, PILE_GAP)),
+              BoxMesh(size=(PILE_T, PILE_W + 2 * PILE_T, PILE_H), cells=(1, 3, 2), origin=(PILE_W, -PILE_T, PILE_GAP)),
+              BoxMesh(size=(PILE_W - 2 * PILE_GAP, PILE_T, PILE_H), cells=(3, 1, 2),
+                      origin=(PILE_GAP, -PILE_T, PILE_GAP)),
+              BoxMesh(size=(PILE_W - 2 * PILE_GAP, PILE_T, PILE_H), cells=(3, 1, 2), origin=(PILE_GAP, PILE_W, PILE_GAP)))
+# two layers of 2 x 2 balls, the upper one shifted 1 cm in x so that it does not land exactly on top
+PILE_BALLS = tuple((0.1125 + 0.225 * i + 0.01 * k, 0.1125 + 0.225 * j, 0.11 + 0.23 * k)
+                   for k in range(2) for i in range(2) for j in range(2))
+PILE_CONTACT = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
+HEAD_ON_CONTACT = solver.Contact(stiffness=1e3, radius=0.01)
+COIL_CONTACT = solver.Contact(stiffness=1e4, radius=0.005)
+
+SCENES.update({scene.name: scene for scene in [
+    Scene(
+        name="pile",
+        title="Eight soft balls dropped into an open box (contact, friction 0.3)",
+        description="Eight voxelised balls (radius 0.1 m, E = 1e5 Pa) in two layers of 2 x 2 fall into an open box of "
+                    "five fixed slabs. Contact between bodies is OGC's two-stage barrier (radius 5 mm, k = 1e4 N/m, "
+                    "friction 0.3); between detections each vertex moves at most 0.45 of its distance to its "
+                    "closest pair, so no ball crosses another or a wall.",
+        panels=(Panel(label="8 balls, E = 1e5 Pa, contact friction 0.3", material=_material(1e5),
+                      mesh=Bodies(PILE_WALLS + (BALL,) * 8, ((0.0, 0.0, 0.0),) * 5 + PILE_BALLS),
+                      iterations=20, fixed=(Outside(upper=(PILE_W, PILE_W, np.inf)),), contact=PILE_CONTACT),),
+        camera=Camera(eye=(0.225, -0.55, 1.35), target=(0.225, 0.225, 0.12), fov_degrees=40.0),
+        frames=90,
+        notes=("contacts: pairs closer than the barrier's radius; closest gap: the least pair distance",),
+    ),
+    Scene(
+        name="head_on",
+        title="Two soft balls meet head-on at 1 m/s each (no gravity, no friction)",
+        description="Two voxelised balls (radius 0.1 m, E = 1e5 Pa) 10 cm apart move towards each other at 1 m/s "
+                    "each, without gravity or friction, and rebound off the contact barrier (radius 1 cm, "
+                    "k = 1e3 N/m). The total momentum stays near zero. No Newton ghost: the reference with "
+                    "contact is the numpy Newton, far too slow to run beside every frame.",
+        panels=(Panel(label="two balls at +-1 m/s, E = 1e5 Pa", material=_material(1e5),
+                      mesh=Bodies((BALL, BALL), ((0.0, 0.0, 0.0), (2 * BALL_R + 0.1, 0.0, 0.0))),
+                      iterations=20, contact=HEAD_ON_CONTACT, velocity=Approach(1.0), show_momentum=True),),
+        camera=Camera(eye=(0.15, -1.3, 0.3), target=(0.15, 0.0, 0.0), fov_degrees=38.0),
+        gravity=(0.0, 0.0, 0.0), dt=1.0 / 240.0, frames=90,
+        notes=("no Newton ghost: the reference with contact is the numpy Newton, too slow for every frame",),
+    ),
+    Scene(
+        name="self_contact",
+        title="The twist bar turned until it coils onto itself (self contact)",
+        description="The twist scene's bar (1 m, 40x4x4 cells, E = 1e5 Pa, no gravity), its ends turned at 360 "
+                    "degrees per second each and pushed towards each other at 0.1 m/s each: it buckles and coils, "
+                    "and self contact (radius 5 mm, k = 1e4 N/m) keeps its coils from passing through each other.",
+        panels=(Panel(label="E = 1e5 Pa, ends turned 360 degrees/s, self contact", material=_material(1e5),
+                      iterations=50, kinematic=(EndFace(0, Side.LOW), EndFace(0, Side.HIGH)),
+                      motion=Coil(degrees_per_second=720.0, approach=0.1), contact=COIL_CONTACT),),
+        camera=Camera(eye=(0.2, -1.6, 0.6), target=(0.5, 0.0, 0.05), fov_degrees=40.0),
+        grid=BACK_WALL, gravity=(0.0, 0.0, 0.0), frames=150,
+    ),
+]})
 
 
 @dataclass(frozen=True)

@@ -36,8 +36,9 @@ def test_unknown_scene_is_a_demo_error():
         scenes.get("nope")
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n == "real_shapes" else n
-                                  for n in sorted(scenes.SCENES)])            # real_shapes: 8 s
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow)
+                                  if n in ("real_shapes", "pile", "self_contact") else n
+                                  for n in sorted(scenes.SCENES)])            # real_shapes: 8 s, pile, self_contact: 6 s
 def test_every_scene_builds_and_steps(name):
     runner = SceneRunner(scenes.get(name))
     for p in runner.panels:
@@ -51,7 +52,7 @@ def test_every_scene_builds_and_steps(name):
         assert state.rgb.shape == state.positions.shape
         assert state.lines and state.lines[0]
     scene = scenes.get(name)
-    moves = scene.gravity != (0.0, 0.0, 0.0) or any(p.kinematic for p in scene.panels)
+    moves = scene.gravity != (0.0, 0.0, 0.0) or any(p.kinematic or p.velocity for p in scene.panels)
     if moves:
         assert max(np.abs(s.positions - x0).max() for s, x0 in zip(states, rest)) > 1e-6
 
@@ -408,3 +409,21 @@ def test_the_sliver_scene_loads_its_mesh_without_a_warning():
         scenes.SLIVER_BUNNY.build()
     with pytest.warns(UserWarning, match="slivers"):
         scenes.AssetMesh("assets/bunny_slivers.vtu").build()
+
+
+def test_contact_scenes_label_the_contact_count_and_the_closest_gap():
+    """head_on: apart at first (nothing within the query radius), then touching after 14 steps (the balls
+    close 10 cm at 2 m/s in 0.05 s = 12 steps); the label shows the solver's count and gap and a momentum
+    that stays near zero."""
+    runner = SceneRunner(scenes.get("head_on"))
+    panel = runner.panels[0]
+    first = runner.advance()[0].lines
+    assert first[-1].startswith("contacts: 0, nothing within the query radius; momentum")
+    for _ in range(13):
+        lines = runner.advance()[0].lines
+    count, gap = panel.sim.contact_count(), panel.sim.min_separation()
+    assert count > 0 and 0 < gap < panel.panel.contact.radius
+    assert len(lines) <= 3, "a panel's label has three rows"
+    contact, momentum = lines[-1].split("; ")
+    assert contact == f"contacts: {count}, closest gap {1000 * gap:.2f} mm"
+    assert float(momentum.split("=")[1].split()[0]) < 1e-3
