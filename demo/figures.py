@@ -532,6 +532,28 @@ def section_jacobi(out, full, size):
 REMEDY_FRAME = 15      # t = 0.27 s: the plain VBD bar has sagged well below its ghost
 
 
+CONTACT_FRAMES = {"pile": 30, "head_on": 13}     # the pile half a second in; the balls pressed together
+
+
+def section_contact(out, full, size):
+    """Chapter 8: one frame of the pile and one of the head-on collision, with their contact counts, closest
+    gaps as numbers for the notes."""
+    from . import scenes
+
+    numbers = {}
+    for name, frame in CONTACT_FRAMES.items():
+        state = _render_scene(scenes.get(name), (frame,), out, f"contact_{name}", size)[frame][0]
+        contact = state.lines[-1].split("; ")[0]
+        numbers[f"contact.{name}.time"] = f"{(frame + 1) * scenes.get(name).dt:.2f}"
+        numbers[f"contact.{name}.label"] = contact
+    scene = scenes.get("head_on")
+    mesh = scene.panels[0].mesh.build()
+    numbers["contact.head_on.tets"] = str(len(mesh.tets))
+    numbers["contact.pile.tets"] = str(len(scenes.get("pile").panels[0].mesh.build().tets))
+    numbers["contact.head_on.gap_radius"] = f"{1000 * scene.panels[0].contact.radius:.0f}"
+    return numbers
+
+
 SECTIONS = {
     "colouring": section_coloring,
     "jacobi": section_jacobi,
@@ -542,6 +564,7 @@ SECTIONS = {
     "guesses": section_guesses,
     "chebyshev": section_chebyshev,
     "remedy": section_remedy,
+    "contact": section_contact,
 }
 
 

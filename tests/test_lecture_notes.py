@@ -12,7 +12,8 @@ from demo.errors import DemoError
 REPO = Path(__file__).resolve().parent.parent
 NOTES = REPO / "lecture_notes"
 CHAPTERS = ["01-implicit-euler.md", "02-newton.md", "03-coordinate-descent.md", "04-parallelism.md",
-            "05-information-propagation.md", "06-what-helps.md", "07-global-channel.md"]
+            "05-information-propagation.md", "06-what-helps.md", "07-global-channel.md",
+            "08-contact.md"]
 
 
 def numbers():
