@@ -91,6 +91,25 @@ def test_stability_quick(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.backend
+def test_contact_quick(tmp_path):
+    run_quick("contact", tmp_path)
+    data = rows(tmp_path / "contact.csv")
+    piles = [r for r in data if r["measurement"] == "pile"]
+    assert [int(r["bodies"]) for r in piles] == [1, 8]
+    assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
+    assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
+    (apart,) = [r for r in data if r["measurement"] != "pile"]
+    assert int(apart["contacts"]) == 0, "bodies set apart have no pair closer than the radius"
+    for r in data:
+        assert float(r["detect_ms"]) > 0 and float(r["sweep_ms"]) > 0
+    for r in piles:
+        assert float(r["step_ms"]) > 0 and float(r["apart_step_ms"]) > 0
+    assert float(apart["ns_per_tet_iter_none"]) > 0 and float(apart["ns_per_tet_iter_contact"]) > 0
+    assert (tmp_path / "contact.png").stat().st_size > 0
+
+
+@pytest.mark.slow
 def test_skip_quick(tmp_path):
     run_quick("skip", tmp_path)
     data = rows(tmp_path / "skip.csv")
@@ -188,7 +207,7 @@ def test_stress_cell_recovers_rest_shape(stress_runner, state):
 # Output folders and arguments: quick runs never touch the committed results, nothing is replaced
 # without --overwrite, bad values end in one line. Only argument handling runs here, no benchmark.
 # ---------------------------------------------------------------------------------------------
-SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed")
+SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed", "contact")
 
 
 def _module(name):
@@ -245,6 +264,7 @@ def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match)
     ("throughput", ["--min-seconds", "0"], "expected a positive number"),
     ("stability", ["--steps", "x"], "expected a positive whole number"),
     ("skip", ["--min-seconds", "nan"], "expected a positive number"),
+    ("contact", ["--steps", "0"], "expected a positive whole number"),
     ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
     ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
 ])

@@ -1,0 +1,188 @@
+"""Contact cost: step time against active contacts, detection against one sweep, the sweep with and without contact.
+
+Four measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
+  * piles of 1, 8, 27 and 64 soft cubes (2 x 2 x 2 cells, 48 tets each) dropped into a fixed open box of
+    five slabs, friction 0.3: median step time, detections per step and active contacts (pairs closer than
+    the radius) after settling (mean_speed: the cubes' mean vertex speed in m/s then), against the same
+    bodies set apart above the box with no gravity (target: at most 2x);
+  * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
+    contact) on the same settled pile and on the large mesh below (target: at most 1x);
+  * ns per tet per VBD iteration of 8 bodies of 3,072 tets (24,576 tets) set apart, no gravity, with
+    contact on (nothing within query_radius) and with contact=None, the fastest of 3 interleaved timings
+    of each (target: at most 1.25x).
+
+    python -m benchmarks.contact --out benchmarks/results/contact
+    python -m benchmarks.contact --quick --out /tmp/contact
+"""
+import time
+
+import numpy as np
+
+from benchmarks.common import (init_taichi, output_folder, parser, positive, print_written, progress, provenance,
+                               seconds_per_call, table, write_csv)
+
+OUTPUTS = ("contact.csv", "contact.png", "summary.md")
+COLUMNS = ["measurement", "bodies", "tets", "contacts", "mean_speed", "detections_per_step", "step_ms", "apart_step_ms", "step_ratio", "detect_ms",
+           "sweep_ms", "detect_per_sweep", "ns_per_tet_iter_none", "ns_per_tet_iter_contact", "contact_per_none"]
+SIZE, PITCH, GAP, WALL = 0.08, 0.14, 0.006, 0.02      # m: cube edge, cube spacing, wall gap, wall thickness
+ROUNDS = 3                                            # interleaved timings of the sweep with and without contact
+SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+
+
+def _walls(solver, k):
+    """The five fixed slabs of an open box holding k x k cubes per layer, k + 1 layers high."""
+    W, T, H = k * PITCH + 0.02, WALL, (k + 1) * 0.1
+    n = 3 * k
+    return [solver.box_mesh(size=(W + 2 * T, W + 2 * T, T), cells=(n, n, 1), origin=(-T, -T, -T)),
+            solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, n, k + 1), origin=(-T, -T, GAP)),
+            solver.box_mesh(size=(T, W + 2 * T, H), cells=(1, n, k + 1), origin=(W, -T, GAP)),
+            solver.box_mesh(size=(W - 2 * GAP, T, H), cells=(n, 1, k + 1), origin=(GAP, -T, GAP)),
+            solver.box_mesh(size=(W - 2 * GAP, T, H), cells=(n, 1, k + 1), origin=(GAP, W, GAP))]
+
+
+def pile_scene(solver, k, apart):
+    """k^3 cubes in layers of k x k inside the box (apart=False) or spread out above it, 2 pitches apart
+    (apart=True); returns (mesh, number of wall vertices)."""
+    walls = _walls(solver, k)
+    top = (k + 1) * 0.1 + 0.1
+    if apart:
+        origins = [(0.04 + 2 * PITCH * i, 0.04 + 2 * PITCH * j, top + 2 * PITCH * layer)
+                   for layer in range(k) for i in range(k) for j in range(k)]
+    else:
+        origins = [(0.04 + PITCH * i + 0.01 * (layer % 2), 0.04 + PITCH * j, 0.01 + 0.1 * layer)
+                   for layer in range(k) for i in range(k) for j in range(k)]
+    cubes = [solver.box_mesh(size=(SIZE,) * 3, cells=(2, 2, 2), origin=o) for o in origins]
+    return solver.merge_meshes(walls + cubes), sum(w.n_vertices for w in walls)
+
+
+def _median_step(sim, steps):
+    """Median seconds of one of `steps` steps and the mean number of detections per step (the contact
+    stage's counter: every iteration after a bound hit detects again)."""
+    detections = sim._contact_stage.detections
+    samples = []
+    for _ in range(steps):
+        t = time.perf_counter()
+        sim.step()
+        samples.append(time.perf_counter() - t)
+    return float(np.median(samples)), (sim._contact_stage.detections - detections) / steps
+
+
+def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
+    """Seconds of one detection at the simulation's positions and of one sweep without contact there."""
+    from solver.physics.contact_detection import ContactDetector
+    from solver.vbd.layout import X
+
+    detector = ContactDetector(mesh, sim.free_mask, sim.contact, sim.dtype)
+    detect_s, _ = seconds_per_call(lambda k: [detector.detect(sim.state, X) for _ in range(k)], min_seconds)
+    plain = solver.Simulation(mesh, solver.Material(**SOFT), dt=sim.dt, fixed=fixed, iterations=1)
+    plain.set_positions(sim.positions)
+    plain.begin_step()
+    sweep_s, _ = seconds_per_call(plain.run_iterations, min_seconds)
+    return detect_s, sweep_s
+
+
+def measure_pile(solver, k, settle, timed, min_seconds):
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
+    mat = solver.Material(**SOFT)
+    mesh, n_walls = pile_scene(solver, k, apart=False)
+    fixed = np.arange(n_walls)
+    sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=20, contact=contact)
+    sim.step(settle)
+    step_s, detections = _median_step(sim, timed)
+    contacts = sim.contact_count()
+    mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
+    far, _ = pile_scene(solver, k, apart=True)
+    apart = solver.Simulation(far, mat, dt=1 / 60, fixed=fixed, gravity=(0, 0, 0), iterations=20, contact=contact)
+    apart.step()
+    apart_s, _ = _median_step(apart, timed)
+    detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
+    return dict(measurement="pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts, mean_speed=mean_speed,
+                detections_per_step=detections, step_ms=step_s * 1e3,
+                apart_step_ms=apart_s * 1e3, step_ratio=step_s / apart_s, detect_ms=detect_s * 1e3,
+                sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
+
+
+def measure_apart(solver, cells, min_seconds):
+    """8 bodies of cells^3 x 6 tets, 2 body widths apart, no gravity: the sweep with and without contact."""
+    side = 0.1
+    bodies = [solver.box_mesh(size=(side,) * 3, cells=(cells,) * 3, origin=(3 * side * i, 3 * side * j, 3 * side * m))
+              for i in range(2) for j in range(2) for m in range(2)]
+    mesh = solver.merge_meshes(bodies)
+    mat = solver.Material(**SOFT)
+    sims = {}
+    for name, contact in (("none", None), ("contact", solver.Contact(stiffness=1e4, radius=0.002))):
+        sims[name] = solver.Simulation(mesh, mat, dt=1 / 60, gravity=(0, 0, 0), iterations=1, contact=contact)
+        sims[name].begin_step()
+    seconds = {name: [] for name in sims}
+    for _ in range(ROUNDS):                  # interleaved, the fastest round of each: the machine is shared
+        for name, sim in sims.items():
+            seconds[name].append(seconds_per_call(sim.run_iterations, min_seconds)[0])
+    seconds = {name: min(v) for name, v in seconds.items()}
+    contacts = sims["contact"].contact_count()
+    detect_s, sweep_s = _detect_and_sweep(solver, sims["contact"], mesh, None, min_seconds)
+    ns = {k: v / mesh.n_tets * 1e9 for k, v in seconds.items()}
+    return dict(measurement="apart, no gravity", bodies=len(bodies), tets=mesh.n_tets, contacts=contacts,
+                detect_ms=detect_s * 1e3, sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s,
+                ns_per_tet_iter_none=ns["none"], ns_per_tet_iter_contact=ns["contact"],
+                contact_per_none=ns["contact"] / ns["none"])
+
+
+def plot(rows, path):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    piles = [r for r in rows if r["measurement"] == "pile"]
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], "o-", label="settled pile")
+    a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], "s--", label="same bodies apart")
+    for r in piles:
+        a.annotate(f"{r['bodies']} bodies", (r["contacts"], r["step_ms"]), fontsize=8)
+    a.set_xlabel("active contacts (pairs closer than the radius)")
+    a.set_ylabel("ms per step (20 iterations)")
+    a.set_title("Step time against active contacts")
+    a.legend()
+    labels = [f"{r['measurement']}\n{r['tets']} tets" for r in rows]
+    b.bar(labels, [r["detect_per_sweep"] for r in rows])
+    b.axhline(1.0, color="k", lw=0.8, ls=":")
+    b.set_ylabel("one detection / one sweep without contact")
+    b.set_title("Detection against one elastic sweep")
+    b.tick_params(axis="x", labelsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None):
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/contact")
+    p.add_argument("--settle", type=positive(int), default=90, help="steps (1/60 s) each pile falls before timing")
+    p.add_argument("--steps", type=positive(int), default=20, help="timed steps per pile and per set-apart scene")
+    p.add_argument("--min-seconds", type=positive(float), default=0.5, help="least time per timing")
+    p.add_argument("--cells", type=positive(int), default=8,
+                   help="cells per side of each of the 8 set-apart bodies (6 tets per cell; 8: 24,576 tets)")
+    args = p.parse_args(argv)
+    out = output_folder(args, OUTPUTS)
+    piles = (1, 2) if args.quick else (1, 2, 3, 4)
+    settle, steps = (3, 2) if args.quick else (args.settle, args.steps)
+    min_seconds = 0.02 if args.quick else args.min_seconds
+    cells = 2 if args.quick else args.cells
+    init_taichi()
+    import solver
+
+    rows = []
+    for k in progress(piles, desc="piles", disable=args.no_progress):
+        rows.append(measure_pile(solver, k, settle, steps, min_seconds))
+    rows.append(measure_apart(solver, cells, min_seconds))
+    text = table(rows, COLUMNS, title="Contact cost (float64, CPU; ratios within this run)")
+    print(text)
+    write_csv(f"{out}/contact.csv", rows, COLUMNS)
+    plot(rows, f"{out}/contact.png")
+    with open(f"{out}/summary.md", "w") as fh:
+        fh.write(f"{provenance()}\n\nThe machine's 2 cores were shared with another job during this run; "
+                 f"compare the ratios, not the milliseconds.\n\n{text}\n")
+    print_written(args, OUTPUTS)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
