@@ -104,8 +104,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
                           stacklevel=3)
             break
         slope = float(np.vdot(g, d))
-        contact = getattr(problem, "contact", None)
-        alpha = 1.0 if contact is None else contact.step_cap(x, d)   # contact: no vertex past its bound
+        alpha = 1.0 if problem.contact is None else problem.contact.step_cap(x, d)   # no vertex past its bound
         while alpha >= SMALLEST_ALPHA:
             np.multiply(d, alpha, out=x_new)
             x_new += x

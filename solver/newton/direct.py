@@ -332,7 +332,7 @@ def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLE
                       force_tolerance: float = None) -> NewtonResult:
     """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`
     (force_tolerance in N: also stop once max_i |dG/dx_i| is below it)."""
-    if getattr(problem, "contact", None) is not None:     # no contact pair blocks in the Taichi Hessian yet
+    if problem.contact is not None:     # no contact pair blocks in the Taichi Hessian yet
         raise ConfigError("fast_newton_solve has no contact term yet; solve a problem with contact by "
                           "solver.newton_solve (or sim.newton_reference())")
     return global_newton(problem.tets, problem.free, linear_solver).solve(

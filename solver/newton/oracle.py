@@ -44,7 +44,7 @@ class StepProblem:
     mu: float
     lam: float
     ground: object = None
-    contact: object = None     # contact hook (issue 17): a `newton.contact_term.ContactTerm` or None
+    contact: object = None     # a `newton.contact_term.ContactTerm` (contact between bodies) or None
 
     def y_with_constraints(self) -> np.ndarray:
         """(N, 3): y at free vertices, the prescribed positions elsewhere (a natural start)."""
