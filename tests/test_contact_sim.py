@@ -126,8 +126,10 @@ def test_bad_contact_input_is_one_line():
     mesh = solver.merge_meshes([a, b])
     cases = [
         (lambda: solver.Simulation(mesh, SOFT, contact="on"), "contact must be a solver.Contact"),
-        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="newton"), "no contact term"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(friction=0.3), method="newton"),
+         "method='newton' minimises G, which has no friction"),
         (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="pcg"), "no contact term"),
+        (lambda: solver.Simulation(mesh, SOFT, contact=solver.Contact(), method="multilevel"), "no contact term"),
         (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.05, 0.0, 0.0))]), SOFT,
                                    contact=solver.Contact()), "bodies 0 and 1 intersect"),
         (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.1, 0.0, 0.0))]), SOFT,
@@ -147,13 +149,17 @@ def test_bad_contact_input_is_one_line():
         frictionless.solve_color(0)
     frictionless.end_step()
     with pytest.raises(solver.ConfigError, match="no contact term"):
-        solver.fast_newton_solve(frictionless.step_problem(), frictionless.positions)
+        solver.newton_pcg(mesh.tets, frictionless.free_mask).solve(frictionless.step_problem(), frictionless.positions)
     scenery = solver.merge_meshes([a, _cube((0.1, 0.0, 0.0)), _cube((0.0, 0.0, 0.3))])    # fixed slabs may touch
     assert len(np.unique(solver.Simulation(scenery, SOFT, fixed=np.arange(2 * a.n_vertices),
                                            contact=solver.Contact()).bodies)) == 3
     newton = solver.Simulation(mesh, SOFT, method="newton")
+    newton.contact = solver.Contact()                 # Newton takes contact, without friction
+    with pytest.raises(solver.ConfigError, match="no friction") as err:
+        newton.contact = solver.Contact(friction=0.3)
+    assert "\n" not in str(err.value)
     with pytest.raises(solver.ConfigError, match="no contact term"):
-        newton.contact = solver.Contact()
+        solver.Simulation(mesh, SOFT, method="pcg").contact = solver.Contact()
 
 
 @pytest.mark.slow

@@ -17,6 +17,7 @@ class ContactTerm:
 
     def __init__(self, contact: Contact, tets: np.ndarray, rest: np.ndarray, free: np.ndarray):
         self.contact = contact
+        self.tets, self.rest = np.asarray(tets), np.asarray(rest, dtype=np.float64)     # for the Taichi twin
         self.surface = surface_primitives(tets)
         self.bodies = body_labels(tets, len(rest))
         self.free = np.asarray(free, dtype=bool)

@@ -56,7 +56,8 @@ class NewtonResult:
 def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: np.ndarray,
                   step_tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50, keep_iterates: bool = False,
                   time_budget: Optional[float] = None, chord: Optional[Callable] = None,
-                  force_tolerance: Optional[float] = None, name: str = "Newton") -> NewtonResult:
+                  force_tolerance: Optional[float] = None, name: str = "Newton",
+                  step_cap: Optional[Callable] = None) -> NewtonResult:
     """Minimise G of `problem` (a `StepProblem`: free, constrained_positions, masses, h) from x0 (N, 3).
 
     energy_gradient(x, out) -> G: G(x) in J, dG/dx (N, 3) written into out (zero at constrained vertices).
@@ -64,14 +65,15 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
     after a step that was not a full Newton step or whose quadratic model g.d / 2 mispredicted the decrease
     of G by more than MODEL_AGREEMENT (and the decrease was above G's round-off); True at the first
     iteration and otherwise (the direct Newton then uses the exact Hessian, see `GlobalNewton.solve`).
-    chord(g) -> d or None: the step with the last factorised Hessian, a back substitution (Newton with a
+    chord(x, g) -> d or None: the step with the last factorised Hessian, a back substitution (Newton with a
     lagged Hessian). Once the steps shrink fast (the last trusted step at most CHORD_ATTEMPT times the one
     before), the chord step is tried first and taken if it is at most CHORD_CONTRACTION times the last
     step: the lagged Hessian is then as good as a new one, and the factorisation is saved.
     step_tolerance: relative to the body's size (0: never stop on the step); force_tolerance: N, or None;
     time_budget: stop (quietly, not converged) after the iteration that exceeds these seconds.
-    With contact (`problem.contact`) the line search starts from the largest step that keeps every vertex
-    within its conservative bound (`ContactTerm.step_cap`), so no iterate crosses a surface.
+    step_cap(x, d) -> alpha in (0, 1], or None (alpha = 1): where the line search starts; with contact, the
+    largest step that keeps every vertex within its conservative bound (`ContactTerm.step_cap`, or its
+    Taichi twin `ContactPairs.step_cap`), so that no iterate crosses a surface.
     Warns when it stops without converging; `name` names the solver in the warnings.
     """
     free = problem.free
@@ -94,7 +96,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
     for it in range(1, max_iterations + 1):
         d = None
         if chord is not None and trusted and np.isfinite(step_before) and last_step <= CHORD_ATTEMPT * step_before:
-            d = chord(g)
+            d = chord(x, g)
             if d is not None and not (np.abs(d).max() <= CHORD_CONTRACTION * last_step and np.vdot(g, d) < 0):
                 d = None
         if d is None:
@@ -104,7 +106,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
                           stacklevel=3)
             break
         slope = float(np.vdot(g, d))
-        alpha = 1.0 if problem.contact is None else problem.contact.step_cap(x, d)   # no vertex past its bound
+        alpha = 1.0 if step_cap is None else step_cap(x, d)     # with contact: no vertex past its bound
         while alpha >= SMALLEST_ALPHA:
             np.multiply(d, alpha, out=x_new)
             x_new += x

@@ -23,6 +23,13 @@ per mesh and free mask, and the linear system is solved by a sparse factorisatio
 Build the solver once per mesh (`GlobalNewton(tets, free)`, or the cached `global_newton(...)`), then
 call `.solve(problem, x0)` for every step. `fast_newton_solve(problem, x0)` is the drop-in for
 `newton_solve`.
+
+With contact (`problem.contact`, issue 17) G gains E_c from the kernels of `contact_pairs.py`, its pairs
+found again at every iterate, and the line search starts from the step cap of the conservative bounds.
+The Hessian's pattern is the tets' joined by the pairs closer than the radius (`HessianPattern`'s
+couplings): built anew when those pairs change, and analysed anew (ordering, symbolic factorisation)
+only when the coupled vertex pairs change; chord steps only while the pairs are those of the last
+factorisation. Without contact nothing of this runs.
 """
 import hashlib
 import warnings
@@ -36,6 +43,7 @@ from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 from ..backend import ensure_taichi
 from ..errors import ConfigError, enum_value
+from .contact_pairs import ContactPairs
 from .hessian import HessianPattern, StepKernels
 from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
 
@@ -226,7 +234,8 @@ class GlobalNewton:
 
     tets (M, 4) int; free (N,) bool: which vertices are unknowns. Builds the Hessian pattern and the
     solver's symbolic analysis once; `solve` can be called for any problem with these tets and free
-    mask (other positions, masses, material, time step, ground).
+    mask (other positions, masses, material, time step, ground, contact). With contact, `contact` is the
+    `ContactPairs` of the last problem, and `analyses` counts the patterns with pairs analysed.
     """
 
     def __init__(self, tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver.AUTO):
@@ -234,6 +243,9 @@ class GlobalNewton:
         self.pattern = HessianPattern(tets, free)
         self.linear_solver = as_linear_solver(linear_solver)
         self.direct = DirectSolver(self.pattern, self.linear_solver)
+        self.contact = None
+        self._coupled = None        # (couplings (P, 4), pattern, DirectSolver) of the last Hessian with contact
+        self.analyses = 0
 
     def check(self, problem) -> None:
         """Raise ConfigError unless `problem` has this solver's tets and free mask."""
@@ -243,26 +255,60 @@ class GlobalNewton:
             raise ConfigError("this GlobalNewton was built for another mesh or free mask; "
                               "use solver.global_newton.global_newton(problem.tets, problem.free) for this problem")
 
-    def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray, project: bool = True) -> np.ndarray:
-        """d (N, 3) solving H d = -g on the free vertices (0 elsewhere). project=False tries the exact,
-        unprojected Hessian first and quietly takes the projected one where the exact one is not
-        positive definite; the projected one falls back to SuperLU, then to a mass-scaled gradient
-        step, with a warning, when it gives no descent direction."""
-        p = self.pattern
-        kernels.hessian(x, project, full=self.direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY))
+    def contact_pairs(self, term) -> ContactPairs:
+        """The Taichi twin of a problem's `ContactTerm`, kept while the problems have its Contact and rest
+        positions (built again otherwise)."""
+        if self.contact is None or not self.contact.serves(term):
+            self.contact = ContactPairs(term)
+            self._coupled = None
+        return self.contact
+
+    def coupled_system(self, contact: ContactPairs, x: np.ndarray):
+        """(pattern, DirectSolver) of the Hessian at x (N, 3) with contact: the tets' pattern joined by the
+        pairs closer than the radius. Kept while those pairs stay; when they change, a new pattern, which
+        keeps the last symbolic analysis if its vertex graph is the same and is analysed anew otherwise."""
+        _, couplings = contact.couplings(x)
+        if self._coupled is not None and np.array_equal(self._coupled[0], couplings):
+            return self._coupled[1], self._coupled[2]
+        pattern = HessianPattern(self.pattern.tets, self.pattern.free, couplings)
+        direct = None if self._coupled is None else self._coupled[2]
+        if direct is not None and _same_graph(direct.pattern, pattern):
+            direct.pattern = pattern
+        else:
+            direct = DirectSolver(pattern, self.linear_solver)
+            self.analyses += 1
+        self._coupled = (couplings, pattern, direct)
+        return pattern, direct
+
+    def _assemble(self, kernels: StepKernels, contact, pattern: HessianPattern, x: np.ndarray, project: bool,
+                  full: bool):
+        """The Hessian at x into `pattern` (`StepKernels.hessian`), with the contact pairs' blocks."""
+        if contact is not None:
+            contact.write_blocks(x, pattern, full)
+        return kernels.hessian(x, project, full, pattern)
+
+    def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray, project: bool = True,
+                         contact: ContactPairs = None) -> np.ndarray:
+        """d (N, 3) solving H d = -g on the free vertices (0 elsewhere), H with the pairs' blocks of
+        `contact` (a `ContactPairs` or None). project=False tries the exact, unprojected elastic Hessian
+        first and quietly takes the projected one where the exact one is not positive definite (the pair
+        blocks are positive semi-definite either way); the projected one falls back to SuperLU, then to a
+        mass-scaled gradient step, with a warning, when it gives no descent direction."""
+        p, direct = (self.pattern, self.direct) if contact is None else self.coupled_system(contact, x)
+        self._assemble(kernels, contact, p, x, project, direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY))
         rhs = -g[p.free].ravel()
         d = np.zeros_like(x)
         try:
-            d[p.free] = self.direct.solve(rhs).reshape(-1, 3)
+            d[p.free] = direct.solve(rhs).reshape(-1, 3)
         except (ArithmeticError, RuntimeError):     # cholmod: not positive definite; qdldl: not quasi-definite
             d[:] = np.nan
         if np.isfinite(d).all() and np.vdot(g, d) < 0:
             return d
         if not project:
-            return self.newton_direction(kernels, x, g, project=True)
+            return self.newton_direction(kernels, x, g, True, contact)
         warnings.warn("the projected Hessian is not positive definite (no descent direction); "
                       "retrying with SuperLU", stacklevel=3)
-        d[p.free] = superlu_solve(kernels.hessian(x), rhs).reshape(-1, 3)
+        d[p.free] = superlu_solve(self._assemble(kernels, contact, p, x, True, True), rhs).reshape(-1, 3)
         if np.isfinite(d).all() and np.vdot(g, d) < 0:
             return d
         warnings.warn("SuperLU gave no descent direction either; taking a mass-scaled gradient step",
@@ -281,23 +327,49 @@ class GlobalNewton:
         Newton"): the projection that keeps far-away steps safe also slows Newton to linear convergence
         near x*, where the exact Hessian is positive definite. So the first iteration, and any after a
         step whose quadratic model mispredicted the decrease of G, use the projected Hessian; the
-        others use the exact one (if it is positive definite), which converges quadratically."""
+        others use the exact one (if it is positive definite), which converges quadratically.
+
+        With contact (`problem.contact`, a `ContactTerm`): G + E_c by `contact_pairs`, the pairs found
+        again at every iterate, steps capped by the bounds (start from x_n, never y, which may lie across
+        a body)."""
         self.check(problem)
         kernels = StepKernels(self.pattern, problem)
-        return damped_newton(problem, kernels.energy_gradient,
-                             lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted), x0,
-                             tolerance, max_iterations, keep_iterates, time_budget, self.chord_direction,
-                             force_tolerance)
+        contact = None if problem.contact is None else self.contact_pairs(problem.contact)
+        energy_gradient = kernels.energy_gradient if contact is None else _with_contact(kernels, contact)
+        return damped_newton(problem, energy_gradient,
+                             lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted, contact),
+                             x0, tolerance, max_iterations, keep_iterates, time_budget,
+                             lambda x, g: self.chord_direction(x, g, contact), force_tolerance,
+                             step_cap=None if contact is None else contact.step_cap)
 
-    def chord_direction(self, g: np.ndarray):
+    def chord_direction(self, x: np.ndarray, g: np.ndarray, contact: ContactPairs = None):
         """d (N, 3) solving H_last d = -g with the last factorised Hessian (a back substitution, no new
-        Hessian), or None when there is none."""
-        if not self.direct.factorised:
+        Hessian), or None when there is none, or (with `contact`) when the pairs at x (N, 3) are not those
+        of that Hessian."""
+        p, direct = self.pattern, self.direct
+        if contact is not None:
+            if self._coupled is None or not np.array_equal(contact.couplings(x)[1], self._coupled[0]):
+                return None
+            _, p, direct = self._coupled
+        if not direct.factorised:
             return None
-        p = self.pattern
         d = np.zeros_like(g)
-        d[p.free] = self.direct.back_solve(-g[p.free].ravel()).reshape(-1, 3)
+        d[p.free] = direct.back_solve(-g[p.free].ravel()).reshape(-1, 3)
         return d
+
+
+def _with_contact(kernels: StepKernels, contact: ContactPairs):
+    """(x, g) -> G(x) + E_c(x), with g (N, 3) = their gradient: the energy_gradient of `damped_newton`."""
+    def energy_gradient(x, g):
+        G = kernels.energy_gradient(x, g)           # writes g
+        return G + contact.energy_gradient(x, g)    # adds dE_c/dx
+    return energy_gradient
+
+
+def _same_graph(a: HessianPattern, b: HessianPattern) -> bool:
+    """Whether two patterns couple the same free vertices (and so have the same scalar pattern)."""
+    return (np.array_equal(a.vertex_graph.indptr, b.vertex_graph.indptr)
+            and np.array_equal(a.vertex_graph.indices, b.vertex_graph.indices))
 
 
 _CACHE = OrderedDict()
@@ -331,9 +403,6 @@ def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLE
                       keep_iterates: bool = False, linear_solver=LinearSolver.AUTO,
                       force_tolerance: float = None) -> NewtonResult:
     """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`
-    (force_tolerance in N: also stop once max_i |dG/dx_i| is below it)."""
-    if problem.contact is not None:     # no contact pair blocks in the Taichi Hessian yet
-        raise ConfigError("fast_newton_solve has no contact term yet; solve a problem with contact by "
-                          "solver.newton_solve (or sim.newton_reference())")
+    (force_tolerance in N: also stop once max_i |dG/dx_i| is below it), contact included."""
     return global_newton(problem.tets, problem.free, linear_solver).solve(
         problem, x0, tolerance, max_iterations, keep_iterates, force_tolerance=force_tolerance)

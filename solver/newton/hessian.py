@@ -375,13 +375,16 @@ def hessian_kernel(x: ti.types.ndarray(), tets: ti.types.ndarray(), grad_rows: t
 class HessianPattern:
     """The CSR sparsity pattern of G's Hessian over the free degrees of freedom, built once.
 
-    tets (M, 4) int; free (N,) bool. Free vertex i has unknowns 3 free_index[i] + (0, 1, 2);
-    free_index is -1 at constrained vertices; vertex_graph (F, F) CSR: which free vertices share a tet.
-    indptr (3F + 1,), indices (nnz,) int32: the scalar CSR pattern (columns sorted) of the 3x3 blocks of
-    every pair of free vertices sharing a tet; upper_indptr, upper_indices: its upper triangle in CSC.
+    tets (M, 4) int; free (N,) bool; couplings (P, 4) int or None: further groups of four vertices whose
+    blocks join the pattern like a tet's (the contact pairs of the Taichi Newton, `contact_pairs.py`);
+    their slots are rows M.. of slot_of. Free vertex i has unknowns 3 free_index[i] + (0, 1, 2);
+    free_index is -1 at constrained vertices; vertex_graph (F, F) CSR: which free vertices share a tet
+    (or a coupling). indptr (3F + 1,), indices (nnz,) int32: the scalar CSR pattern (columns sorted) of
+    the 3x3 blocks of every pair of free vertices sharing a tet or a coupling; upper_indptr,
+    upper_indices: its upper triangle in CSC.
     """
 
-    def __init__(self, tets: np.ndarray, free: np.ndarray):
+    def __init__(self, tets: np.ndarray, free: np.ndarray, couplings: np.ndarray = None):
         tets = np.ascontiguousarray(tets, dtype=np.int32)
         free = np.asarray(free, dtype=bool)
         self.tets, self.free = tets, free
@@ -390,7 +393,8 @@ class HessianPattern:
         self.free_index[free] = np.arange(int(free.sum()), dtype=np.int32)
         self.n_free = int(free.sum())
         self.n_dofs = 3 * self.n_free
-        fi = self.free_index[tets]                                        # (M, 4)
+        groups = tets if couplings is None else np.concatenate([tets, np.asarray(couplings, np.int32).reshape(-1, 4)])
+        fi = self.free_index[groups]                                      # (M + P, 4)
         rows = np.repeat(fi, 4, axis=1).ravel()
         cols = np.tile(fi, (1, 4)).ravel()
         keep = (rows >= 0) & (cols >= 0)
@@ -411,7 +415,7 @@ class HessianPattern:
             return np.searchsorted(keys, f.astype(np.int64) * self.n_free + w)
 
         self.nnz = int(9 * vptr[-1])
-        if self.nnz >= 2 ** 31 or 16 * len(tets) >= 2 ** 31:
+        if self.nnz >= 2 ** 31 or 16 * len(groups) >= 2 ** 31:
             raise MemoryError("Hessian pattern too large for 32-bit CSR indices")
         entry_f = np.repeat(np.arange(self.n_free), n_neighbours)
         entry_rank = np.arange(len(vcols)) - vptr[entry_f]
@@ -426,7 +430,7 @@ class HessianPattern:
         order = np.argsort(block, kind="stable")
         slot = np.empty(len(block), dtype=np.int64)
         slot[order] = np.arange(len(block))
-        self.slot_of = np.full((len(tets), 16), -1, dtype=np.int32)
+        self.slot_of = np.full((len(groups), 16), -1, dtype=np.int32)
         self.slot_of[both] = np.where(fl[both] <= fk[both], slot, -2 - slot)   # above the diagonal: -2 - slot
         self.slots = np.zeros((len(block), 3, 3))
         self.contribution_start = np.concatenate([[0], np.cumsum(np.bincount(block, minlength=len(vcols)))]) \
@@ -512,11 +516,12 @@ class StepKernels:
         stress_hessian_kernel(x, self.tets, self.grad_rows, self.mu, self.lam, p.eigenvalues, p.eigenvectors, p.A9)
         return self.pattern.A9
 
-    def hessian(self, x: np.ndarray, project: bool = True, full: bool = True):
+    def hessian(self, x: np.ndarray, project: bool = True, full: bool = True, pattern: HessianPattern = None):
         """(3F, 3F) Hessian over the free unknowns at x, projected per tet unless project=False: its upper
         triangle in `pattern.upper`, and with full=True the whole matrix in the pattern's CSR arrays,
-        returned as a scipy CSR matrix (full=False returns None)."""
-        p = self.pattern
+        returned as a scipy CSR matrix (full=False returns None). pattern: another pattern of these tets
+        (default this one's), e.g. one with contact couplings, whose coupling slots are already written."""
+        p = self.pattern if pattern is None else pattern
         hessian_kernel(x, self.tets, self.grad_rows, self.volumes, self.masses, self.h, self.mu, self.lam,
                        *self.ground, int(project), int(full), p.slot_of, p.slots, p.contribution_start,
                        p.block_entry, p.block_row_length, p.block_vertex, p.lower_blocks, p.data, p.upper_entry,

@@ -122,5 +122,6 @@ def newton_solve(problem: StepProblem, x0: np.ndarray, tolerance: float = REFERE
         d[free_dofs] = spla.spsolve(H.tocsc(), -g.ravel()[free_dofs], permc_spec="MMD_AT_PLUS_A")
         return d.reshape(-1, 3)
 
+    step_cap = None if problem.contact is None else problem.contact.step_cap
     return damped_newton(problem, energy_gradient, direction, x0, tolerance, max_iterations, keep_iterates,
-                         name="Newton reference")
+                         name="Newton reference", step_cap=step_cap)

@@ -268,6 +268,9 @@ class NewtonPCG:
                 or not np.array_equal(problem.tets, p.tets):
             raise ConfigError("this NewtonPCG was built for another mesh or free mask; "
                               "use solver.pcg.newton_pcg(problem.tets, problem.free) for this problem")
+        if problem.contact is not None:
+            raise ConfigError("Newton-PCG has no contact term; solve a problem with contact by "
+                              "solver.fast_newton_solve (or solver.newton_solve)")
         kernels = StepKernels(p, problem)
         state = dict(g0=None, direct=False, direct_iterations=0)
         cg_counts = []

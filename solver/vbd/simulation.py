@@ -90,8 +90,9 @@ class Simulation(SimulationState):
     translation_correction, keep_orientation, kinematic_motion, record_history), where what each one
     means for each method is written down; a setting a method cannot honour raises `ConfigError`;
     contact: a `Contact` between the mesh's bodies (`bodies`, `merge_meshes`) and within one, or None
-    (`contact_state.py`; method "vbd" only: Chebyshev skips the vertices that touched this step, and
-    the translation correction, which needs every vertex free, moves all bodies together).
+    (`contact_state.py`; methods "vbd", where Chebyshev skips the vertices that touched this step and
+    the translation correction, which needs every vertex free, moves all bodies together, and "newton",
+    frictionless, `settings.py`).
 
     Live settings, used from the next iteration or step on: every field of `Settings` (`sim.dt = ...`
     or, several at once, `sim.settings = dataclasses.replace(sim.settings, ...)`) and `material` (or
@@ -139,7 +140,7 @@ class Simulation(SimulationState):
         if method is Method.AUTO:
             method, self.method_reason = choose(wave_cells(mesh, material, settings.dt))
             if as_contact(contact) is not None and method is not Method.VBD:
-                method, self.method_reason = Method.VBD, f"{self.method_reason}; but only 'vbd' has contact"
+                method, self.method_reason = Method.VBD, f"{self.method_reason}; but 'multilevel' has no contact"
         if method is not Method.VBD:
             global_methods.require_global_solvers()
         self.method = method
@@ -358,8 +359,9 @@ class Simulation(SimulationState):
     def newton_reference(self, tolerance: float = 1e-10, max_iterations: int = 50, x0=None) -> np.ndarray:
         """(N, 3) converged global Newton solution x* of the next step, from the current state.
 
-        x0: (N, 3) start of the Newton iterations (default y; x_n with contact, solved by the numpy
-        `newton_solve`, since y may lie across a body); the simulation itself is not changed.
+        x0: (N, 3) start of the Newton iterations (default y; x_n with contact, since y may lie across a
+        body, solved by the numpy `newton_solve`: the reference that method="newton", its Taichi twin, is
+        checked against); the simulation itself is not changed.
         To measure a VBD step cheaply, build `problem = sim.step_problem()` before `sim.step()` and
         warm-start `solver.fast_newton_solve(problem, sim.positions)` after it. Solved by the Taichi
         Newton (`global_newton`); `solver.newton_solve` is its independent numpy twin.

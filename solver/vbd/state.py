@@ -189,13 +189,17 @@ class SimulationState:
     @contact.setter
     def contact(self, value):
         value = as_contact(value)
-        if value is not None and self.method is not Method.VBD:
-            raise ConfigError(f"method={self.method.value!r} has no contact term yet; use method='vbd' with "
-                              "contact (sim.newton_reference() solves the same step with contact)")
+        if value is not None and self.method not in (Method.VBD, Method.NEWTON):
+            raise ConfigError(f"method={self.method.value!r} has no contact term; use method='vbd' or 'newton' "
+                              "with contact (sim.newton_reference() solves the same step with contact)")
+        if value is not None and self.method is Method.NEWTON and value.friction > 0:
+            raise ConfigError("method='newton' minimises G, which has no friction; set contact friction=0, "
+                              "or use method='vbd'")
         stage = None if value is None else ContactStage(self.mesh, self.free_mask, value, self.dtype)
         if stage is not None:
             stage.check_apart(self.state, self.positions)
         self._contact, self._contact_stage = value, stage
+        self._newton_contact = None         # the contact term of the StepProblems, built on first use
 
     @property
     def bodies(self) -> np.ndarray:
@@ -213,15 +217,18 @@ class SimulationState:
         return float("inf") if self._contact_stage is None else self._contact_stage.min_separation(self.state)
 
     def _contact_term(self):
-        """The numpy contact term of the Newton reference (`newton.contact_term`), or None."""
+        """The numpy contact term of the Newton reference (`newton.contact_term`), or None; one per
+        `contact`, shared by the step problems (method="newton" builds its Taichi twin from it)."""
         if self._contact is None:
             return None
         if self._contact.friction > 0:
             raise ConfigError("the Newton reference minimises G, which has no friction; "
                               "set contact friction=0 to compare against it")
-        from ..newton.contact_term import ContactTerm
+        if self._newton_contact is None:
+            from ..newton.contact_term import ContactTerm
 
-        return ContactTerm(self._contact, self.mesh.tets, self.mesh.vertices, self.free_mask)
+            self._newton_contact = ContactTerm(self._contact, self.mesh.tets, self.mesh.vertices, self.free_mask)
+        return self._newton_contact
 
     def set_velocities(self, v: np.ndarray, previous=None) -> None:
         """Overwrite the velocities v_n (N, 3) in m/s. previous: the velocities v_{n-1} (N, 3) of the
