@@ -1,8 +1,12 @@
 """The contact term E_c of G for the Taichi Newton (issue 17): the fast twin of `contact_term.ContactTerm`.
 
-The pairs come from the hashed-grid `ContactDetector` that the VBD sweep uses, found again at every new
-iterate x (the last x is kept, so that G, its gradient, the step cap and the Hessian at one x share one
-detection). Every pair's energy b(d), gradient b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T
+The pairs come from the hashed-grid `ContactDetector` that the VBD sweep uses, found again at every Newton
+iterate x, where the step cap and the Hessian need the pairs and bounds at x itself. A line-search trial
+only needs E_c and its gradient, and those take the pairs of the last detection, their distances
+recomputed, while no vertex has moved by half of (query_radius - radius) since: a pair that detection
+missed was at least query_radius apart and has come closer by at most twice that, so it is still
+beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials detect again. E_c is
+then exactly that of the pairs found at the trial, as in the oracle. Every pair's energy b(d), gradient b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T
 (12 and 12x12, n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) come from
 `physics.contact.pair_gradient_hessian`, evaluated in the kernels below. The numpy `ContactTerm` of the
 oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms, so each checks the other.
@@ -105,6 +109,10 @@ class ContactPairs:
         """Find the pairs at x (N, 3) unless they were found there last."""
         if np.array_equal(self._at, x):
             return
+        self._detect(x)
+
+    def _detect(self, x: np.ndarray) -> None:
+        """Find the pairs, their incidence lists and the bounds at x (N, 3)."""
         self._positions.from_numpy(x[None])
         self.detector.detect(self._positions, 0)
         self._at[:] = x
@@ -112,9 +120,12 @@ class ContactPairs:
         self.detections += 1
 
     def energy_gradient(self, x: np.ndarray, g: np.ndarray) -> float:
-        """E_c(x) in J; adds dE_c/dx (N, 3) to g at the free vertices. x (N, 3) float64 C-contiguous."""
-        self.detect(x)
-        d, c = self.detector, self.contact
+        """E_c(x) in J; adds dE_c/dx (N, 3) to g at the free vertices. x (N, 3) float64 C-contiguous.
+        Detects again only when a pair the last detection missed may have come closer than the radius."""
+        c = self.contact
+        if not 2 * np.linalg.norm(x - self._at, axis=1).max() < c.query_radius - c.radius:
+            self._detect(x)
+        d = self.detector
         if d.n_pairs > len(self._pair_gradient):
             self._pair_gradient = np.zeros((2 * d.n_pairs, 12))
         return float(contact_energy_gradient_kernel(x, d.kind, d.pair, d.n_pairs, c.stiffness, c.radius,
