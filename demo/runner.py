@@ -444,7 +444,8 @@ class PanelSim:
         if self.ghost is not None and self.ghost_mode is GhostMode.TRAJECTORY:
             tip = self.tip
             drop = lambda p: float(self.rest_tip_height - p[tip, 2].mean())
-            lines.append(f"tip drop {_cm(drop(x))} cm (ghost {_cm(drop(self.ghost))} cm)")
+            if self.panel.contact is None:      # a bending bar's measure; bodies in contact have no tip
+                lines.append(f"tip drop {_cm(drop(x))} cm (ghost {_cm(drop(self.ghost))} cm)")
             # the error that has built up over all steps so far: what the audience sees
             gap = float(np.linalg.norm(x - self.ghost, axis=1).max())
             fraction = gap / self.length
@@ -462,7 +463,7 @@ class PanelSim:
         if self.panel.show_inverted:
             lines.append(f"inverted tets: {self.sim.inverted_count()}")
         contact = [self._contact_line()] if self.panel.contact is not None else []
-        if self.panel.show_momentum:     # on the contact line: a panel's label has three rows
+        if self.panel.show_momentum:     # on the contact line, which keeps the label within its rows
             p = self.sim.masses @ self.sim.velocities
             contact.append(f"momentum |sum m v| = {np.linalg.norm(p):.1e} kg m/s")
         if contact:
@@ -602,10 +603,11 @@ def _newton(problem, guess):
     """(x*, converged): the minimiser of the step's G by the demo's Newton policy, started from whichever
     of the inertial prediction y and ``guess`` (the VBD result) is lower in G: a VBD result that has
     converged (soft body) puts Newton next to the answer; one that has not (stiff body) can be a worse
-    start than y."""
+    start than y. With contact always from ``guess``, whose bodies are apart (y may lie across a body,
+    where G has a lower, wrong minimum)."""
     y = problem.y_with_constraints()
     guess = np.where(problem.free[:, None], guess, problem.constrained_positions)
-    start = guess if problem.energy(guess) < problem.energy(y) else y
+    start = guess if problem.contact is not None or problem.energy(guess) < problem.energy(y) else y
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)    # reported in the label instead
         result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE, max_iterations=NEWTON_ITERATIONS)

@@ -413,17 +413,29 @@ def test_the_sliver_scene_loads_its_mesh_without_a_warning():
 
 def test_contact_scenes_label_the_contact_count_and_the_closest_gap():
     """head_on: apart at first (nothing within the query radius), then touching after 14 steps (the balls
-    close 10 cm at 2 m/s in 0.05 s = 12 steps); the label shows the solver's count and gap and a momentum
-    that stays near zero."""
-    runner = SceneRunner(scenes.get("head_on"))
+    close 10 cm at 2 m/s in 0.05 s = 12 steps); the label shows the solver's count and gap, a momentum
+    that stays near zero, and the Newton ghost with contact: how far off it the balls are and the step's
+    relative error."""
+    from demo.compose import label_rows
+
+    scene = scenes.get("head_on")
+    runner = SceneRunner(scene)
     panel = runner.panels[0]
+    panel.ghost_enabled = False         # the Newton ghost is the slow part: on for the last two steps only
     first = runner.advance()[0].lines
     assert first[-1].startswith("contacts: 0, nothing within the query radius; momentum")
-    for _ in range(13):
-        lines = runner.advance()[0].lines
+    for _ in range(11):
+        runner.advance()
+    panel.ghost_enabled = True          # the trajectory ghost starts from the balls' state then
+    for _ in range(2):
+        state = runner.advance()[0]
+    lines = state.lines
     count, gap = panel.sim.contact_count(), panel.sim.min_separation()
     assert count > 0 and 0 < gap < panel.panel.contact.radius
-    assert len(lines) <= 3, "a panel's label has three rows"
+    assert len(lines) <= label_rows(scene), "the label band holds every line"
     contact, momentum = lines[-1].split("; ")
     assert contact == f"contacts: {count}, closest gap {1000 * gap:.2f} mm"
     assert float(momentum.split("=")[1].split()[0]) < 1e-3
+    assert state.ghost is not None and panel.reference.contact_count() > 0 and state.newton_converged
+    assert any(line.startswith("off the ghost by") for line in lines)
+    assert 0 < state.error < 1 and any(line.startswith("relative error") for line in lines)
