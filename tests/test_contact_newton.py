@@ -100,7 +100,8 @@ def test_pair_blocks_and_gradient_match_the_numpy_twins():
             xp, xm = x.copy(), x.copy()
             xp[i, a] += eps
             xm[i, a] -= eps
-            fd = (contact.energy_gradient(xp, np.zeros_like(x)) - contact.energy_gradient(xm, np.zeros_like(x))) / (2 * eps)
+            scratch = np.zeros_like(x)
+            fd = (contact.energy_gradient(xp, scratch) - contact.energy_gradient(xm, scratch)) / (2 * eps)
             assert fd == pytest.approx(g[i, a], rel=1e-5, abs=1e-6 * np.abs(g).max())
     # the Hessian with the pair blocks: the oracle's (PSD Gauss-Newton pair blocks, n held fixed), free dofs
     free_dofs = np.flatnonzero(np.repeat(problem.free, 3))

@@ -6,10 +6,12 @@ only needs E_c and its gradient, and those take the pairs of the last detection,
 recomputed, while no vertex has moved by half of (query_radius - radius) since: a pair that detection
 missed was at least query_radius apart and has come closer by at most twice that, so it is still
 beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials detect again. E_c is
-then exactly that of the pairs found at the trial, as in the oracle. Every pair's energy b(d), gradient b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T
-(12 and 12x12, n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) come from
+then exactly that of the pairs found at the trial, as in the oracle.
+
+Every pair's energy b(d), gradient b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T (12 and
+12x12, n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) come from
 `physics.contact.pair_gradient_hessian`, evaluated in the kernels below. The numpy `ContactTerm` of the
-oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms, so each checks the other.
+oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms: each checks the other.
 
 - `energy_gradient(x, g)`: E_c(x), with dE_c/dx added to g at the free vertices: every pair writes its
   gradient to a buffer, then every vertex sums those of its pairs (the detector's incidence lists), so the
