@@ -148,13 +148,18 @@ def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_ord
     """One VBD iteration: each colour in turn, all vertices of a colour in parallel.
 
     color_starts (n_colors + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
-    serial: run each colour on one CPU thread (`serial_sweep`); the vertices of a colour are independent,
-    so the result is the same, without a barrier per colour.
+    serial: one CPU thread visits every slot in order (`serial_sweep`), i.e. colour 0, then colour 1, ...;
+    the vertices of a colour are independent, so the result is the same, without a barrier per colour
+    (and one loop to compile instead of one per colour).
     """
-    for c in ti.static(range(n_colors)):
-        ti.loop_config(serialize=serial)
-        for k in range(color_starts[c], color_starts[c + 1]):
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for k in range(color_starts[0], color_starts[n_colors]):
             solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    else:
+        for c in ti.static(range(n_colors)):
+            for k in range(color_starts[c], color_starts[c + 1]):
+                solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
 
 
 @ti.kernel
