@@ -2,7 +2,7 @@
 
 Unconverged VBD leaves a residual f_i at every vertex, and the residuals do not sum to zero: each
 step then adds a spurious momentum h sum_i f_i, and a ball dropped straight down drifts sideways
-(lecture notes, chapter 5); a block sliding on a fixed slab lags behind g (sin - mu cos). Elastic
+(the `drop` scene); a block sliding on a fixed slab lags behind g (sin - mu cos). Elastic
 forces are invariant under a translation of a whole body (every tet lies in one body), so the Newton
 step restricted to the translation modes of the bodies, x_i <- x_i + d_b for every vertex i of body b,
 costs one force evaluation per step. Bodies are the mesh's vertex-connected components
@@ -55,7 +55,7 @@ from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
 
-HALVINGS = 6   # with contact, a step that would increase G is halved at most this often, then dropped
+HALVINGS = 4   # with contact, a step that would increase G is halved at most this often, then dropped
 from .vertex_solve import force_hessian
 
 
