@@ -36,10 +36,10 @@ keeps all its vertices inside: the bound above still holds, and the body keeps a
 correction as the bounds allow (skipping it instead would drop the correction whenever one vertex of
 a body in contact sits near its bound, which is where bodies lag). Q is only a model of G: a pair
 that comes within the radius during the correction, or a gap closing into the barrier's log stage,
-can make G rise where Q falls. With contact the steps of all bodies are therefore halved together
-until G does not rise (`energy_change`: inertia, ground and the pairs between bodies; the elastic
-energy does not change), at most HALVINGS times, after which the step is dropped. Friction is not
-part of G, so with friction this line search may shorten a step that friction asks for.
+can make G rise where Q falls. With contact the steps of all bodies are therefore scaled together by
+the largest of 1, 1/2, 1/4, 1/8 for which G does not rise, or dropped (`energy_changes` evaluates the
+four in one launch: inertia, ground and the pairs between bodies; the elastic energy does not change).
+Friction is not part of G, so with friction this line search may shorten a step that friction asks for.
 
 Arrays (N vertices, B bodies): body (N,) int32; corrected (B,) int32, 1 for a body without fixed or
 kinematic vertices; F (B,) 3-vectors in N, D (B,) 3-vectors in N/m (the diagonal of the inertia and
@@ -55,7 +55,7 @@ from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
 
-HALVINGS = 4   # with contact, a step that would increase G is halved at most this often, then dropped
+TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
 from .vertex_solve import force_hessian
 
 
@@ -158,39 +158,42 @@ def pair_distance(kind, x0, x1, x2, x3):
 
 
 @ti.kernel
-def energy_change(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
-                  params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
-                  d: ti.types.ndarray(), alpha: ti.types.ndarray(), scale: ti.f64, kind: ti.types.ndarray(),
-                  pair: ti.types.ndarray(), n_pairs: ti.i32, k_c: ti.f64, r: ti.f64) -> ti.f64:
-    """G(x + t) - G(x) in J, in float64, for the translations t_b = scale alpha_b d_b of the corrected
-    bodies: their inertia and ground terms and their pairs with other bodies (the elastic energy and the
-    pairs within a body do not change under a translation of the body)."""
-    change = ti.cast(0.0, ti.f64)
+def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                   params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
+                   d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
+                   pair: ti.types.ndarray(), n_pairs: ti.i32, k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
+    """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
+    corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
+    elastic energy and the pairs within a body do not change under a translation of the body)."""
+    for s in ti.static(range(TRIALS)):
+        change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
     height, k_g = ti.cast(params[GROUND_HEIGHT], ti.f64), ti.cast(params[GROUND_STIFFNESS], ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         if corrected[body[i]]:
-            t = body_shift(i, body, corrected, d, alpha, scale)
             x, y = ti.cast(state[X, i], ti.f64), ti.cast(state[Y, i], ti.f64)
             m_h2 = inv_h2 * ti.cast(mass[i], ti.f64)
-            delta = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
-            if params[GROUND] > 0:
-                delta += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
-            change += delta
+            for s in ti.static(range(TRIALS)):
+                t = body_shift(i, body, corrected, d, alpha, 0.5 ** s)
+                delta = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
+                if params[GROUND] > 0:
+                    delta += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
+                change[s] += delta
     for p in range(n_pairs):
         v = pair[p]
         a, b = body[v[0]], body[v[3]]
         if a != b and (corrected[a] or corrected[b]):
             x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
             x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
-            before = pair_distance(kind[p], x0, x1, x2, x3)
-            after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
-                                  x1 + body_shift(v[1], body, corrected, d, alpha, scale),
-                                  x2 + body_shift(v[2], body, corrected, d, alpha, scale),
-                                  x3 + body_shift(v[3], body, corrected, d, alpha, scale))
-            change += barrier(after, k_c, r) - barrier(before, k_c, r)
-    return change
+            before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
+            for s in ti.static(range(TRIALS)):
+                scale = 0.5 ** s
+                after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
+                                      x1 + body_shift(v[1], body, corrected, d, alpha, scale),
+                                      x2 + body_shift(v[2], body, corrected, d, alpha, scale),
+                                      x3 + body_shift(v[3], body, corrected, d, alpha, scale))
+                change[s] += barrier(after, k_c, r) - before
 
 
 @ti.kernel
@@ -233,8 +236,8 @@ class BodyTranslation:
 
     bodies: (N,) int body of each vertex (`mesh.bodies.body_labels`); free: (N,) bool, the vertices VBD
     moves. `corrected` (B,) bool marks the bodies without fixed or kinematic vertices, `any` whether
-    there is one; after `apply`, `scale` is the line search's factor (1 without contact) and `steps()`
-    each body's translation scale alpha_b d_b.
+    there is one; after `apply`, `scale` is the line search's factor (1 without contact, 0 for a dropped
+    step) and `steps()` each body's translation scale alpha_b d_b.
     """
 
     def __init__(self, bodies: np.ndarray, free: np.ndarray):
@@ -253,6 +256,7 @@ class BodyTranslation:
         self.touching = ti.ndarray(ti.i32, n_bodies)
         self.d = ti.Vector.ndarray(3, ti.f64, n_bodies)
         self.alpha = ti.ndarray(ti.f64, n_bodies)
+        self._changes = ti.ndarray(ti.f64, TRIALS)
         self.scale = 1.0
 
     def apply(self, state, mass, adjacency, params, contact_stage, dtype) -> None:
@@ -271,13 +275,10 @@ class BodyTranslation:
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
                             det.bound)
-            for _ in range(HALVINGS):
-                if energy_change(state, mass, color_order, params, body, corrected, self.d, self.alpha, self.scale,
-                                 det.kind, det.pair, det.n_pairs, c.stiffness, c.radius) <= 0:
-                    break
-                self.scale /= 2
-            else:
-                self.scale = 0.0
+            energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
+                           det.n_pairs, c.stiffness, c.radius, self._changes)
+            descending = np.flatnonzero(self._changes.to_numpy() <= 0)
+            self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
         translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
 
     def steps(self) -> np.ndarray:
