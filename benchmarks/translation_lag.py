@@ -7,20 +7,18 @@ Two measurements, each with the correction on and off (`translation_correction`)
     and mu = 0 (`tests/test_contact_sim.py`'s set-up), 20, 30 and 60 VBD iterations per step: the cube's
     mean acceleration over steps 15 to 45 as a fraction of g (sin - mu cos) (1: no lag);
   * pile: the piles of `benchmarks.contact` (k^3 soft cubes dropped into a fixed open box, friction 0.3,
-    20 iterations): the cubes' mean vertex speed in m/s after settling (0 at rest), and the median step time.
+    20 iterations): the cubes' mean vertex speed in m/s after settling (0 at rest).
 
     python -m benchmarks.translation_lag --out benchmarks/results/translation_lag
     python -m benchmarks.translation_lag --quick --out /tmp/translation_lag
 """
-import time
-
 import numpy as np
 
 from benchmarks.common import (init_taichi, output_folder, parser, positive, print_written, progress, provenance,
                                table, write_csv)
 
 OUTPUTS = ("translation_lag.csv", "summary.md")
-COLUMNS = ["scene", "mu", "bodies", "iterations", "correction", "acceleration_fraction", "mean_speed", "step_ms"]
+COLUMNS = ["scene", "mu", "bodies", "iterations", "correction", "acceleration_fraction", "mean_speed"]
 THETA = np.radians(30.0)
 SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
 
@@ -46,8 +44,8 @@ def measure_incline(solver, mu, iterations, correction, steps):
                 acceleration_fraction=a / (9.81 * (np.sin(THETA) - mu * np.cos(THETA))))
 
 
-def measure_pile(solver, k, correction, settle, timed):
-    """Mean vertex speed of the cubes after `settle` steps, then the median of `timed` steps."""
+def measure_pile(solver, k, correction, settle):
+    """Mean vertex speed of the cubes after `settle` steps."""
     from benchmarks.contact import pile_scene
 
     mesh, n_walls = pile_scene(solver, k, apart=False)
@@ -56,25 +54,19 @@ def measure_pile(solver, k, correction, settle, timed):
                             contact=contact, translation_correction=correction)
     sim.step(settle)
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
-    samples = []
-    for _ in range(timed):
-        t = time.perf_counter()
-        sim.step()
-        samples.append(time.perf_counter() - t)
-    return dict(scene="pile", mu=0.3, bodies=k ** 3, iterations=20, correction=correction, mean_speed=mean_speed,
-                step_ms=1e3 * float(np.median(samples)))
+    return dict(scene="pile", mu=0.3, bodies=k ** 3, iterations=20, correction=correction,
+                mean_speed=mean_speed)
 
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/translation_lag")
     p.add_argument("--settle", type=positive(int), default=90, help="steps (1/60 s) each pile falls before measuring")
-    p.add_argument("--steps", type=positive(int), default=10, help="timed steps per pile")
     args = p.parse_args(argv)
     out = output_folder(args, OUTPUTS)
     iterations = (20,) if args.quick else (20, 30, 60)
     piles = (1,) if args.quick else (1, 2, 3)
     incline_steps = 6 if args.quick else 45
-    settle, steps = (3, 2) if args.quick else (args.settle, args.steps)
+    settle = 3 if args.quick else args.settle
     init_taichi()
     import solver
 
@@ -85,14 +77,14 @@ def main(argv=None):
         if scene == "incline":
             rows.append(measure_incline(solver, a, b, correction, incline_steps))
         else:
-            rows.append(measure_pile(solver, a, correction, settle, steps))
+            rows.append(measure_pile(solver, a, correction, settle))
     text = table(rows, COLUMNS, title="Translation correction per body (float64, CPU)")
     print(text)
     write_csv(f"{out}/translation_lag.csv", rows, COLUMNS)
     with open(f"{out}/summary.md", "w") as fh:
         fh.write(f"{provenance()}\n\nacceleration_fraction: the sliding cube's acceleration over g (sin - mu cos), "
-                 f"1 for no lag; mean_speed: the settled pile's mean vertex speed in m/s; step_ms: shared 2-core "
-                 f"machine, compare within the run.\n\n{text}\n")
+                 f"1 for no lag; mean_speed: the settled pile's mean vertex speed in m/s.\n\n"
+                 f"{text}\n")
     print_written(args, OUTPUTS)
     return 0
 
