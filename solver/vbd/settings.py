@@ -90,11 +90,12 @@ class Settings:
     check_every: VBD iterations between two tolerance checks, None for CHECK_EVERY (vbd only);
     initial_guess: an `InitialGuess` or its name; chebyshev_rho: spectral radius estimate rho of
     Chebyshev acceleration (VBD Eq. 18-19), in (0, 1), or None; damping: k_d in s (VBD Eq. 10-11), 0 for
-    none; ground: a `Ground` or None; translation_correction: end every step of a body without fixed or
-    kinematic vertices with the rigid-translation correction; keep_orientation: never let an upright
-    tet invert (VBD's guess and vertex steps are limited); kinematic_motion: (t, rest (K, 3)) -> (K, 3)
-    positions of the kinematic vertices at time t, or None; record_history: keep G and max |f_i| after
-    every iteration of the last step.
+    none; ground: a `Ground` or None; translation_correction: end every step with the rigid-translation
+    correction, one translation per body without fixed or kinematic vertices (`translation.py`; bodies
+    with a fixed vertex get none); keep_orientation: never let an upright tet invert (VBD's guess and
+    vertex steps are limited); kinematic_motion: (t, rest (K, 3)) -> (K, 3) positions of the kinematic
+    vertices at time t, or None; record_history: keep G and max |f_i| after every iteration of the last
+    step.
     """
 
     dt: float = 1 / 60

@@ -23,7 +23,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from . import energy as energy_kernels
-from . import global_methods, implicit_euler, orientation, translation, vertex_solve
+from . import global_methods, implicit_euler, orientation, vertex_solve
 from ..backend import as_precision, ensure_taichi, running_on_cpu
 from .chebyshev import chebyshev_omega, chebyshev_step, chebyshev_update
 from .contact_state import as_contact
@@ -91,8 +91,8 @@ class Simulation(SimulationState):
     means for each method is written down; a setting a method cannot honour raises `ConfigError`;
     contact: a `Contact` between the mesh's bodies (`bodies`, `merge_meshes`) and within one, or None
     (`contact_state.py`; methods "vbd", where Chebyshev skips the vertices that touched this step and
-    the translation correction, which needs every vertex free, moves all bodies together, and "newton",
-    frictionless, `settings.py`).
+    the translation correction of each free body counts its pairs with other bodies and keeps to the
+    bounds, and "newton", frictionless, `settings.py`).
 
     Live settings, used from the next iteration or step on: every field of `Settings` (`sim.dt = ...`
     or, several at once, `sim.settings = dataclasses.replace(sim.settings, ...)`) and `material` (or
@@ -241,15 +241,14 @@ class Simulation(SimulationState):
         return ran
 
     def end_step(self) -> None:
-        """The translation correction (free bodies), v = (x - x_n) / h, advance the clock. A step that
-        diverged raises `VBDError` and leaves the simulation at x_n, as before the step."""
+        """The translation correction (each body without fixed or kinematic vertices, `translation.py`),
+        v = (x - x_n) / h, advance the clock. A step that diverged raises `VBDError` and leaves the
+        simulation at x_n, as before the step."""
         if not self._in_step:
             raise ConfigError("end_step() needs begin_step() first")
-        if self._settings.translation_correction and self.free_mask.all():
-            color_order, offsets, others, adj_f, _ = self._adjacency
-            translation.translation_system(self.state, self._mass, color_order, offsets, others, adj_f,
-                                           self._params, self._translation, self.dtype)
-            translation.translate(self.state, color_order, self._translation, self.dtype)
+        if self._settings.translation_correction and self._body_translation.any:
+            self._body_translation.apply(self.state, self._mass, self._adjacency, self._params, self._contact_stage,
+                                         self.dtype)
         moved = implicit_euler.largest_displacement(self.state)
         size = self._size
         if not moved <= 10 * size:

@@ -15,6 +15,7 @@ from ..mesh.bodies import body_labels
 from ..mesh.topology import Topology, grad_rows
 from ..method import Method
 from .contact_state import ContactStage, as_contact
+from .translation import BodyTranslation
 
 _DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
 
@@ -62,7 +63,7 @@ class SimulationState:
         self._H = ti.Matrix.ndarray(3, 3, dtype, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free_mask.astype(np.int32))
-        self._translation = ti.Vector.ndarray(3, ti.f64, 2)
+        self._body_translation = BodyTranslation(body_labels(mesh.tets, n), self.free_mask)
 
         X, T = mesh.vertices, mesh.tets
         self._grad_rows = grad_rows(X, T)                  # (M, 4, 3): rows 1-3 are Dm^-1

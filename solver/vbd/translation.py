@@ -1,51 +1,287 @@
-"""The rigid-translation correction: the coarsest global channel, for free bodies.
+"""The rigid-translation correction: the coarsest global channel, one translation per free body.
 
 Unconverged VBD leaves a residual f_i at every vertex, and the residuals do not sum to zero: each
 step then adds a spurious momentum h sum_i f_i, and a ball dropped straight down drifts sideways
-(lecture notes, chapter 5). Elastic forces are invariant under a translation of the whole body, so the
-Newton step restricted to the three translation modes, x_i <- x_i + d with
+(the `drop` scene); a block sliding on a fixed slab lags behind g (sin - mu cos). Elastic
+forces are invariant under a translation of a whole body (every tet lies in one body), so the Newton
+step restricted to the translation modes of the bodies, x_i <- x_i + d_b for every vertex i of body b,
+costs one force evaluation per step. Bodies are the mesh's vertex-connected components
+(`mesh.bodies.body_labels`); a body with a fixed or kinematic vertex gets no correction (its elastic
+energy is not translation invariant), every other body b solves its own 3x3 system
 
-    d = (sum_i m_i/h^2 I + K_c)^-1 sum_i f_i          (K_c: penalty contact stiffness),
+    d_b = A_b^-1 F_b,   F_b = sum_{i in b} f_i + sum_{pairs p of b} f_p,b
+                        A_b = sum_{i in b} (m_i/h^2 I + ground block) + sum_{pairs p of b} b''(d_p) n_p n_p^T
 
-makes the residuals sum to zero again at the cost of one force evaluation per step. It is a
-Galerkin coarse correction whose coarse space is the translations; it only applies to bodies without
-fixed or kinematic vertices, whose elastic energy is translation invariant. Friction is not a
-potential and stays out of K_c (its lagged stiffness would block the correction on the ground).
+where the pairs are b's contact pairs with other bodies closer than the radius. A pair's weights on
+one side sum to 1 (a vertex: 1; an edge: 1 - s + s) and on the other to -1, so a translated body acts
+on the pair like one vertex of weight s_b = +-1: its force f_p,b and block come from the same
+`contact.contact_force_hessian` (and `contact_friction`) as a vertex's. Pairs within one body are left
+out: their forces sum to zero over the body and its translation does not change them. Friction is
+not a potential and stays out of A_b (its lagged stiffness would block the correction on the ground
+and on a slab); its force is part of F_b. A single body touching no other body has a diagonal A_b,
+solved componentwise: the correction of a free body on its own is exactly the one for the whole mesh.
+
+Why each body may solve alone. The exact Galerkin system couples two free bodies a, b through each
+of their pairs: its quadratic model Q(d) = 1/2 d^T A d - F^T d has the pair term
+b''/2 (n . (d_a - d_b))^2, and A_a counts the pair in full as if b stood still. This is block Jacobi
+over the bodies, and it cannot increase Q: with D the block diagonal of the A_b,
+d^T (2 D - A) d = sum_b d_b^T (masses and ground) d_b + sum_pairs b'' (n . (d_a + d_b))^2 >= 0, so for
+any scale alpha_b in [0, 1] per body, Q(alpha d) <= sum_b (alpha_b^2 - alpha_b) F_b^T A_b^-1 F_b <= 0.
+Two bodies pressed together may overshoot their relative correction, but by less than twice.
+
+With contact, every vertex must stay within its bound |x_i - x_det,i| <= b_i (OGC's conservative
+bounds, `contact_state.py`), or two surfaces could cross. A body whose step would take a vertex past
+its bound has its step scaled down, d_b <- alpha_b d_b with alpha_b the largest scale in [0, 1] that
+keeps all its vertices inside: the bound above still holds, and the body keeps as much of its
+correction as the bounds allow (skipping it instead would drop the correction whenever one vertex of
+a body in contact sits near its bound, which is where bodies lag). Q is only a model of G: a pair
+that comes within the radius during the correction, or a gap closing into the barrier's log stage,
+can make G rise where Q falls. With contact the steps of all bodies are therefore scaled together by
+the largest of 1, 1/2, 1/4, 1/8 for which G does not rise, or dropped (`energy_changes` evaluates the
+four in one launch: inertia, ground and the pairs between bodies; the elastic energy does not change).
+Friction is not part of G, so with friction this line search may shorten a step that friction asks for.
+
+Arrays (N vertices, B bodies): body (N,) int32; corrected (B,) int32, 1 for a body without fixed or
+kinematic vertices; F (B,) 3-vectors in N, D (B,) 3-vectors in N/m (the diagonal of the inertia and
+ground blocks), K (B,) 3x3 in N/m (the contact blocks), touching (B,) int32 (pairs with other bodies),
+d (B,) 3-vectors in m, alpha (B,); all per-body sums in float64.
 """
+import numpy as np
+
 from .._ti import ti
 
-from ..physics.ground import ground_hessian_zz
-from ..physics.inertia import inertia_block
-from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X
+from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
+from ..physics.ground import ground_energy, ground_hessian_zz
+from ..physics.inertia import inertia_block, inertia_energy
+from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
+
+TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
 from .vertex_solve import force_hessian
 
 
 @ti.kernel
-def translation_system(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
-                       offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
-                       params: ti.types.ndarray(), out: ti.types.ndarray(), dtype: ti.template()):
-    """out[0] = sum_i f_i and out[1] = the diagonal of sum_i m_i/h^2 I + K_c, over the free vertices.
-
-    out: (2,) 3-vectors of float64.
-    """
-    out[0] = ti.Vector.zero(ti.f64, 3)
-    out[1] = ti.Vector.zero(ti.f64, 3)
+def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+              offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+              params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
+              F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(), touching: ti.types.ndarray(),
+              dtype: ti.template()):
+    """F_b = sum_i f_i and D_b = the diagonal of sum_i m_i/h^2 I + ground block over the vertices of each
+    corrected body b (segmented sums by body label); K_b and touching_b cleared."""
+    for b in range(F.shape[0]):
+        F[b] = ti.Vector.zero(ti.f64, 3)
+        D[b] = ti.Vector.zero(ti.f64, 3)
+        K[b] = ti.Matrix.zero(ti.f64, 3, 3)
+        touching[b] = 0
     inv_h2 = 1 / params[TIME_STEP] ** 2
     for k in range(color_order.shape[0]):
         i = color_order[k]
-        f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-        M = inertia_block(ti.cast(inv_h2 * mass[i], dtype))
-        K = ti.Vector([M[0, 0], M[1, 1], M[2, 2]])
-        if params[GROUND] > 0:
-            K[2] += ground_hessian_zz(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS])
-        out[0] += ti.cast(f, ti.f64)
-        out[1] += ti.cast(K, ti.f64)
+        b = body[i]
+        if corrected[b]:
+            f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+            M = inertia_block(ti.cast(inv_h2 * mass[i], dtype))
+            diagonal = ti.Vector([M[0, 0], M[1, 1], M[2, 2]])
+            if params[GROUND] > 0:
+                diagonal[2] += ground_hessian_zz(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS])
+            F[b] += ti.cast(f, ti.f64)
+            D[b] += ti.cast(diagonal, ti.f64)
 
 
 @ti.kernel
-def translate(state: ti.types.ndarray(), color_order: ti.types.ndarray(), out: ti.types.ndarray(),
-              dtype: ti.template()):
-    """x_i += d, d = out[0] / out[1] componentwise, for every free vertex (out as `translation_system`)."""
-    d = ti.cast(out[0] / out[1], dtype)
+def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.types.ndarray(), n_pairs: ti.i32,
+              body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(),
+              K: ti.types.ndarray(), touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64,
+              r: ti.f64, mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()):
+    """Add to F_b and K_b of each corrected body its pairs with other bodies closer than r, the body acting
+    on the pair as one vertex of weight s_b = sum of the pair's weights on its side (module docstring);
+    pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them."""
+    kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
+    eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
+    for p in range(n_pairs):
+        v = pair[p]
+        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
+        ends = ti.Vector([body[v[0]], body[v[3]]])
+        if d < rr and ends[0] != ends[1]:
+            s = ti.cast(0, dtype)
+            u = ti.Vector.zero(dtype, 3)
+            for j in ti.static(range(4)):
+                if body[v[j]] == ends[0]:
+                    s += w[j]
+                u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
+            for side in ti.static(range(2)):
+                c = ends[side]
+                if corrected[c]:
+                    s_c = (1 - 2 * side) * s
+                    f, H = contact_force_hessian(d, s_c, n, kc, rr)
+                    if mu_c > 0:
+                        db, _ = barrier_derivatives(d, kc, rr)
+                        f_f, _ = contact_friction(u, n, s_c, -db, mu_c, eps_u, dtype)
+                        f += f_f
+                    F[c] += ti.cast(f, ti.f64)
+                    K[c] += ti.cast(H, ti.f64)
+                    touching[c] += 1
+
+
+@ti.kernel
+def body_steps(corrected: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(),
+               touching: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray()):
+    """d_b = (diag(D_b) + K_b)^-1 F_b for each corrected body (F_b / D_b componentwise for one touching no
+    other body), 0 for the others; alpha_b = 1."""
+    for b in range(F.shape[0]):
+        step = ti.Vector.zero(ti.f64, 3)
+        if corrected[b]:
+            if touching[b] == 0:
+                step = F[b] / D[b]
+            else:
+                A = K[b]
+                for a in ti.static(range(3)):
+                    A[a, a] += D[b][a]
+                step = A.inverse() @ F[b]
+        d[b] = step
+        alpha[b] = 1.0
+
+
+@ti.func
+def body_shift(i, body: ti.template(), corrected: ti.template(), d: ti.template(), alpha: ti.template(), scale):
+    """The translation scale alpha_b d_b (float64 3-vector, m) of vertex i's body b, 0 if b gets none."""
+    t = ti.Vector.zero(ti.f64, 3)
+    b = body[i]
+    if corrected[b]:
+        t = scale * alpha[b] * d[b]
+    return t
+
+
+@ti.func
+def pair_distance(kind, x0, x1, x2, x3):
+    """The distance d in m of a pair (`contact.pair_geometry`) at float64 positions."""
+    d, w, n = pair_geometry(kind, x0, x1, x2, x3, ti.f64)
+    return d
+
+
+@ti.kernel
+def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                   params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
+                   d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
+                   pair: ti.types.ndarray(), n_pairs: ti.i32, k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
+    """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
+    corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
+    elastic energy and the pairs within a body do not change under a translation of the body)."""
+    for s in ti.static(range(TRIALS)):
+        change[s] = 0.0
+    inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
+    height, k_g = ti.cast(params[GROUND_HEIGHT], ti.f64), ti.cast(params[GROUND_STIFFNESS], ti.f64)
     for k in range(color_order.shape[0]):
-        state[X, color_order[k]] += d
+        i = color_order[k]
+        if corrected[body[i]]:
+            x, y = ti.cast(state[X, i], ti.f64), ti.cast(state[Y, i], ti.f64)
+            m_h2 = inv_h2 * ti.cast(mass[i], ti.f64)
+            for s in ti.static(range(TRIALS)):
+                t = body_shift(i, body, corrected, d, alpha, 0.5 ** s)
+                delta = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
+                if params[GROUND] > 0:
+                    delta += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
+                change[s] += delta
+    for p in range(n_pairs):
+        v = pair[p]
+        a, b = body[v[0]], body[v[3]]
+        if a != b and (corrected[a] or corrected[b]):
+            x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
+            x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
+            before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
+            for s in ti.static(range(TRIALS)):
+                scale = 0.5 ** s
+                after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
+                                      x1 + body_shift(v[1], body, corrected, d, alpha, scale),
+                                      x2 + body_shift(v[2], body, corrected, d, alpha, scale),
+                                      x3 + body_shift(v[3], body, corrected, d, alpha, scale))
+                change[s] += barrier(after, k_c, r) - before
+
+
+@ti.kernel
+def limit_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), body: ti.types.ndarray(),
+                    corrected: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(),
+                    x_det: ti.types.ndarray(), bound: ti.types.ndarray()):
+    """alpha_b = the largest scale in [0, 1] for which x_i + alpha_b d_b stays within |. - x_det,i| <= b_i
+    for every vertex i of body b: the larger root of |m + alpha d|^2 = b_i^2, m = x_i - x_det,i (0 for a
+    vertex outside its ball that the step does not bring back); x_det (N,) 3-vectors, bound (N,) in m."""
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        b = body[i]
+        step = d[b]
+        a2 = step.dot(step)
+        if corrected[b] and a2 > 0:
+            m = ti.cast(state[X, i] - x_det[i], ti.f64)
+            md = m.dot(step)
+            q = ti.cast(bound[i], ti.f64)
+            discriminant = md * md - a2 * (m.dot(m) - q * q)
+            reach = ti.cast(0.0, ti.f64)
+            if discriminant > 0:
+                reach = ti.max((-md + ti.sqrt(discriminant)) / a2, 0.0)
+            ti.atomic_min(alpha[b], reach)
+
+
+@ti.kernel
+def translate(state: ti.types.ndarray(), color_order: ti.types.ndarray(), body: ti.types.ndarray(),
+              corrected: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(), scale: ti.f64,
+              dtype: ti.template()):
+    """x_i += scale alpha_b d_b for every vertex i of a corrected body b."""
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        b = body[i]
+        if corrected[b]:
+            state[X, i] += ti.cast(scale * alpha[b] * d[b], dtype)
+
+
+class BodyTranslation:
+    """The per-body translation correction of one simulation (module docstring).
+
+    bodies: (N,) int body of each vertex (`mesh.bodies.body_labels`); free: (N,) bool, the vertices VBD
+    moves. `corrected` (B,) bool marks the bodies without fixed or kinematic vertices, `any` whether
+    there is one; after `apply`, `scale` is the line search's factor (1 without contact, 0 for a dropped
+    step) and `steps()` each body's translation scale alpha_b d_b.
+    """
+
+    def __init__(self, bodies: np.ndarray, free: np.ndarray):
+        bodies = np.asarray(bodies, dtype=np.int32)
+        n_bodies = int(bodies.max()) + 1
+        self.corrected = np.bincount(bodies, weights=(~np.asarray(free, dtype=bool)).astype(float),
+                                      minlength=n_bodies) == 0
+        self.any = bool(self.corrected.any())
+        self.body = ti.ndarray(ti.i32, len(bodies))
+        self.body.from_numpy(bodies)
+        self._corrected = ti.ndarray(ti.i32, n_bodies)
+        self._corrected.from_numpy(self.corrected.astype(np.int32))
+        self.F = ti.Vector.ndarray(3, ti.f64, n_bodies)
+        self.D = ti.Vector.ndarray(3, ti.f64, n_bodies)
+        self.K = ti.Matrix.ndarray(3, 3, ti.f64, n_bodies)
+        self.touching = ti.ndarray(ti.i32, n_bodies)
+        self.d = ti.Vector.ndarray(3, ti.f64, n_bodies)
+        self.alpha = ti.ndarray(ti.f64, n_bodies)
+        self._changes = ti.ndarray(ti.f64, TRIALS)
+        self.scale = 1.0
+
+    def apply(self, state, mass, adjacency, params, contact_stage, dtype) -> None:
+        """Translate every corrected body by its alpha_b d_b at the current positions; contact_stage: the
+        simulation's `ContactStage` (its pairs, x_det and bounds), or None."""
+        color_order, offsets, others, adj_f, _ = adjacency
+        body, corrected = self.body, self._corrected
+        body_sums(state, mass, color_order, offsets, others, adj_f, params, body, corrected, self.F, self.D, self.K,
+                  self.touching, dtype)
+        if contact_stage is not None:
+            det, c = contact_stage.detector, contact_stage.contact
+            pair_sums(state, det.kind, det.pair, det.n_pairs, body, corrected, self.F, self.K, self.touching, params,
+                      c.stiffness, c.radius, c.friction, c.friction_speed, dtype)
+        body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha)
+        self.scale = 1.0
+        if contact_stage is not None:
+            limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
+                            det.bound)
+            energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
+                           det.n_pairs, c.stiffness, c.radius, self._changes)
+            descending = np.flatnonzero(self._changes.to_numpy() <= 0)
+            self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
+        translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
+
+    def steps(self) -> np.ndarray:
+        """(B,) 3-vectors: the translation scale alpha_b d_b in m of each body at the last `apply` (0 for
+        bodies without a correction)."""
+        return self.scale * self.alpha.to_numpy()[:, None] * self.d.to_numpy()
