@@ -70,6 +70,7 @@ def test_hash_grid_gives_the_brute_force_pairs_on_random_configurations(setting)
     if setting == "colliding_hash":       # eight buckets: every bucket holds items of many cells
         detector._mask = 7
         detector._bucket_fill, detector._bucket_start = ti.ndarray(ti.i32, 8), ti.ndarray(ti.i32, 9)
+        detector._bucket_fill.fill(0)
     if setting == "wide_query":
         assert sum(detector._n_excluded) > 0      # rest neighbours closer than q are excluded
     self_pairs = 0

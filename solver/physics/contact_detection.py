@@ -371,13 +371,15 @@ class ContactDetector:
         self._box_hi = ti.Vector.ndarray(3, dtype, T + E)
         self._lo = ti.Vector.ndarray(3, ti.i32, T + E)
         self._hi = ti.Vector.ndarray(3, ti.i32, T + E)
-        self._bucket_fill = ti.ndarray(ti.i32, buckets)
+        self._bucket_fill = ti.ndarray(ti.i32, buckets)       # zero between detections
+        self._bucket_fill.fill(0)
         self._bucket_start = ti.ndarray(ti.i32, buckets + 1)
-        self._entries = ti.ndarray(ti.i32, 8 * (T + E))
+        self._entries = ti.ndarray(ti.i32, 4 * (T + E))
         self._counter = ti.ndarray(ti.i32, 1)
         self._query_count = ti.ndarray(ti.i32, V + E)
         self._query_start = ti.ndarray(ti.i32, V + E + 1)
-        self._vertex_fill = ti.ndarray(ti.i32, n)
+        self._vertex_fill = ti.ndarray(ti.i32, n)             # zero between detections
+        self._vertex_fill.fill(0)
         longest = max(buckets, V + E, n)
         self._chunk = max(64, int(np.sqrt(longest)))
         self._serial = initialised_arch() == ti.cpu
@@ -417,8 +419,8 @@ class ContactDetector:
         c = self.contact
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
-                                 self._free, self._moving, self._excluded_vt, self._n_excluded[0], self._excluded_ee,
-                                 self._n_excluded[1], self._box_lo, self._box_hi, self._lo, self._hi,
+                                 self._free, self._moving, self._excluded_vt, self._n_excluded[0],
+                                 self._excluded_ee, self._n_excluded[1], self._box_lo, self._box_hi, self._lo, self._hi,
                                  self._bucket_fill, self._bucket_start, self._entries, self._partial,
                                  self._counter, self._found_query, self._found_rank, self._found_partner,
                                  self._found_distance, self._query_count, self._query_start, self._vertex_fill,
