@@ -70,6 +70,7 @@ def test_hash_grid_gives_the_brute_force_pairs_on_random_configurations(setting)
     if setting == "colliding_hash":       # eight buckets: every bucket holds items of many cells
         detector._mask = 7
         detector._bucket_fill, detector._bucket_start = ti.ndarray(ti.i32, 8), ti.ndarray(ti.i32, 9)
+        detector._bucket_fill.fill(0)
     if setting == "wide_query":
         assert sum(detector._n_excluded) > 0      # rest neighbours closer than q are excluded
     self_pairs = 0
@@ -102,18 +103,19 @@ def test_detection_is_deterministic_and_buffers_grow_without_dropping_pairs():
     mesh = _scene(rng, n_bodies=4)
     contact = solver.Contact(radius=0.01, query_radius=0.05)
     detector = ContactDetector(mesh, np.ones(mesh.n_vertices, dtype=bool), contact)
-    detector._allocate_pairs(1)                 # far too small: the detection must grow it
+    detector._allocate_pairs(1)                 # far too small: the detection must grow them
+    detector._entries = ti.ndarray(ti.i32, 1)
     x = _positions(mesh.vertices + rng.normal(0, 0.01, mesh.vertices.shape))
     n = detector.detect(x)
-    assert n > 1 and detector._capacity >= n
+    assert n > 1 and detector._capacity >= n and detector._entries.shape[0] > 1
     first = [a.copy() for a in detector.pairs()] + [a.copy() for a in detector.vertex_pairs()]
-    capacity = detector._capacity
+    capacity, entries = detector._capacity, detector._entries
     for _ in range(3):
         assert detector.detect(x) == n
         again = list(detector.pairs()) + list(detector.vertex_pairs())
         for a, b in zip(first, again):
             np.testing.assert_array_equal(a, b)
-    assert detector._capacity == capacity       # nothing allocated when nothing grows
+    assert detector._capacity == capacity and detector._entries is entries   # nothing allocated when nothing grows
 
 
 def test_pairs_of_fixed_vertices_only_are_skipped():
@@ -153,8 +155,9 @@ def test_numpy_twin_finds_the_same_pairs_and_exclusions():
         np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
 
 
+@pytest.mark.parametrize("serial", [False, True])
 @pytest.mark.parametrize("n,chunk", [(0, 64), (1, 64), (63, 64), (64, 64), (1000, 64), (4097, 100)])
-def test_exclusive_scan_is_the_cumulative_sum(n, chunk):
+def test_exclusive_scan_is_the_cumulative_sum(n, chunk, serial):
     from solver.physics.contact_detection import exclusive_scan
 
     solver.ensure_taichi()
@@ -163,7 +166,7 @@ def test_exclusive_scan_is_the_cumulative_sum(n, chunk):
     device_counts.from_numpy(counts)
     starts = ti.ndarray(ti.i32, len(counts) + 1)
     partial = ti.ndarray(ti.i32, len(counts) // chunk + 1)
-    total = exclusive_scan(device_counts, starts, n, chunk, partial)
+    total = exclusive_scan(device_counts, starts, n, chunk, partial, serial)
     want = np.concatenate([[0], np.cumsum(counts[:n])])
     assert total == want[-1]
     np.testing.assert_array_equal(starts.to_numpy()[:n + 1], want)

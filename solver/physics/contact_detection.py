@@ -1,26 +1,28 @@
 """Finding the pairs of contact (issue 17): a hashed uniform grid built by Taichi kernels at each detection,
 the exact distance of every candidate, per-vertex incidence lists and OGC's conservative bounds.
 
-One detection, all in kernels on the device:
-  1. every triangle and edge gets its box grown by the query radius q, as a range of grid cells;
+One detection is one kernel launch (its top-level loops run one after the other on the device):
+  1. every triangle and edge gets its box, as a range of grid cells;
   2. the grid: count the entries of each hash bucket, prefix sum, scatter the items into their
      buckets, sort each bucket (so that everything after is deterministic);
-  3. every surface vertex looks up the triangles in its cell (first in each sorted bucket), and every
-     edge the edges of higher index in the cells of its box, each unordered edge pair once (reported
-     in the lowest cell the two ranges share); a candidate whose box meets the query's, that passes
-     the filters below and lies closer than q is a pair. One pass counts the
-     pairs of each query, a prefix sum places them, a second pass writes them in order;
+  3. every surface vertex looks up the triangles in the cells within q (the query radius) of it, and
+     every edge the edges of higher index in the cells of its box grown by q; a candidate is reported
+     once, in the lowest cell the two ranges share (first in each sorted bucket). A candidate whose box
+     meets the query's grown one, that passes the filters below and lies closer than q is a pair: one
+     pass notes each pair with its query and its rank there, a prefix sum of the counts per query places
+     them in order of query and rank (the same order on every run, whatever the threads did);
   4. per-vertex incidence lists (CSR: offsets, pair ids ascending), so that a vertex gathers its terms
      without atomics;
   5. the bound b_v = g min(q, distance of v's closest pair) of every vertex (g = bound_relaxation).
 
 Filters: the primitives share no vertex; they belong to different bodies, or (with self_contact) to one
 body and were not closer than q at rest; at least one of the four vertices is free. Buffers grow when a
-detection needs more room (no pair is ever dropped); otherwise nothing is allocated per detection.
+detection needs more room (no pair is ever dropped: the launch is repeated); otherwise nothing is
+allocated per detection.
 """
 import numpy as np
 
-from .._ti import ti
+from .._ti import initialised_arch, ti
 from ..mesh.bodies import body_labels
 from ..mesh.surface import surface_primitives
 from .contact import Contact, PairKind, edge_edge, edge_edge_np, point_triangle, point_triangle_np
@@ -28,6 +30,7 @@ from .contact import Contact, PairKind, edge_edge, edge_edge_np, point_triangle,
 # Bits of the cell hash (Teschner et al. 2003's large primes); the bucket count is a power of two.
 HASH_PRIMES = (73856093, 19349663, 83492791)
 BUCKETS_PER_ITEM = 4
+CELL_PER_EDGE = 1.25     # grid cell edge / (mean surface edge or 2 q, the larger): fastest of 0.75-2 measured
 
 
 @ti.func
@@ -61,49 +64,42 @@ def item_box(positions: ti.template(), row, triangles: ti.template(), edges: ti.
     return lower, upper
 
 
-@ti.kernel
-def cell_ranges(positions: ti.types.ndarray(), row: ti.i32, triangles: ti.types.ndarray(),
-                edges: ti.types.ndarray(), q: ti.f64, cell: ti.f64, box_lo: ti.types.ndarray(),
-                box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
-                fill: ti.types.ndarray(), mask: ti.i32, dtype: ti.template()):
-    """box_lo/box_hi (T + E,) corners of every item's box grown by q, lo/hi their cell ranges, and
-    fill (B,) the bucket counts."""
-    for h in range(fill.shape[0]):
-        fill[h] = 0
-    for item in range(lo.shape[0]):
-        lower, upper = item_box(positions, row, triangles, edges, item, dtype)
-        box_lo[item] = ti.cast(lower - q, dtype)
-        box_hi[item] = ti.cast(upper + q, dtype)
-        lo[item] = cell_of(box_lo[item], cell)
-        hi[item] = cell_of(box_hi[item], cell)
-        for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
-                                  (lo[item][2], hi[item][2] + 1)):
-            ti.atomic_add(fill[cell_hash(ti.Vector([i, j, k]), mask)], 1)
+@ti.func
+def scan(counts: ti.template(), starts: ti.template(), n, chunk, partial: ti.template(), serial: ti.template()):
+    """starts[i] = counts[0] + ... + counts[i-1] for i <= n. serial: in one serial loop (on the CPU, where
+    starting a parallel loop costs more than the sum). Else in three top-level loops of about sqrt(n) serial
+    steps each: chunks of `chunk` counts summed in parallel, the chunk sums prefix-summed serially
+    (partial (n / chunk + 1,) holds them), then every entry offset by its chunk's start."""
+    if ti.static(serial):
+        starts[0] = 0
+        ti.loop_config(serialize=True)
+        for i in range(n):
+            starts[i + 1] = starts[i] + counts[i]
+    else:
+        n_chunks = (n + chunk - 1) // chunk
+        for c in range(n_chunks):
+            total = 0
+            for i in range(c * chunk, ti.min((c + 1) * chunk, n)):
+                total += counts[i]
+                starts[i + 1] = total
+            partial[c] = total
+        running = 0
+        ti.loop_config(serialize=True)
+        for c in range(n_chunks):
+            total = partial[c]
+            partial[c] = running
+            running += total
+        for i in range(n):
+            starts[i + 1] += partial[i // chunk]
+        starts[0] = 0
 
 
 @ti.kernel
 def exclusive_scan(counts: ti.types.ndarray(), starts: ti.types.ndarray(), n: ti.i32, chunk: ti.i32,
-                   partial: ti.types.ndarray()) -> ti.i32:
-    """starts[i] = counts[0] + ... + counts[i-1] for i <= n; returns starts[n]. In three passes of about
-    sqrt(n) serial steps each: chunks of `chunk` counts summed in parallel, the chunk sums prefix-summed
-    serially (partial (n / chunk + 1,) holds them), then every entry offset by its chunk's start."""
-    n_chunks = (n + chunk - 1) // chunk
-    for c in range(n_chunks):
-        total = 0
-        for i in range(c * chunk, ti.min((c + 1) * chunk, n)):
-            total += counts[i]
-            starts[i + 1] = total
-        partial[c] = total
-    running = 0
-    ti.loop_config(serialize=True)
-    for c in range(n_chunks):
-        total = partial[c]
-        partial[c] = running
-        running += total
-    for i in range(n):
-        starts[i + 1] += partial[i // chunk]
-    starts[0] = 0
-    return running
+                   partial: ti.types.ndarray(), serial: ti.template()) -> ti.i32:
+    """`scan` on its own; returns starts[n]."""
+    scan(counts, starts, n, chunk, partial, serial)
+    return starts[n]
 
 
 @ti.func
@@ -116,21 +112,6 @@ def sort_segment(values: ti.template(), begin, end):
             values[b] = values[b - 1]
             b -= 1
         values[b] = v
-
-
-@ti.kernel
-def scatter_items(lo: ti.types.ndarray(), hi: ti.types.ndarray(), starts: ti.types.ndarray(),
-                  fill: ti.types.ndarray(), entries: ti.types.ndarray(), mask: ti.i32):
-    """entries[starts[h]:starts[h + 1]]: the items whose range covers a cell of bucket h, ascending."""
-    for h in range(fill.shape[0]):
-        fill[h] = 0
-    for item in range(lo.shape[0]):
-        for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
-                                  (lo[item][2], hi[item][2] + 1)):
-            h = cell_hash(ti.Vector([i, j, k]), mask)
-            entries[starts[h] + ti.atomic_add(fill[h], 1)] = item
-    for h in range(fill.shape[0]):
-        sort_segment(entries, starts[h], starts[h + 1])
 
 
 @ti.func
@@ -148,17 +129,15 @@ def is_excluded(keys: ti.template(), n_keys, key):
 
 
 @ti.func
-def admissible(same_body, n_free, excluded: ti.template(), n_excluded, key, self_contact, rest_mode):
-    """Whether two primitives that share no vertex make a pair (module docstring): same_body, n_free of
-    their four vertices free, `key` their entry in the sorted rest exclusions. In rest mode: whether
-    they lie in one body (to list the self-contact exclusions at rest)."""
+def admissible(same_body, excluded: ti.template(), n_excluded, key, self_contact, rest_mode):
+    """Whether two primitives that share no vertex, not both still, make a pair (module docstring):
+    same_body, `key` their entry in the sorted rest exclusions. In rest mode: whether they lie in one
+    body (to list the self-contact exclusions at rest)."""
     ok = same_body
     if rest_mode == 0:
-        ok = n_free > 0
+        ok = True
         if same_body:
-            ok = ok and self_contact != 0
-            if ok:
-                ok = not is_excluded(excluded, n_excluded, key)
+            ok = self_contact != 0 and not is_excluded(excluded, n_excluded, key)
     return ok
 
 
@@ -186,126 +165,171 @@ def first_above(entries: ti.template(), begin, end, item):
     return a
 
 
+@ti.func
+def record(counter: ti.template(), found_query: ti.template(), found_rank: ti.template(),
+           found_partner: ti.template(), found_distance: ti.template(), query, rank, partner, d):
+    """Note the pair (query, partner) at distance d, the rank-th of its query, in the next free row
+    (counter[0], then one up) of found_query/found_rank/found_partner/found_distance (C,); rows past C
+    are counted, not kept."""
+    s = ti.atomic_add(counter[0], 1)
+    if s < found_query.shape[0]:
+        found_query[s] = query
+        found_rank[s] = rank
+        found_partner[s] = partner
+        found_distance[s] = d
+
+
 @ti.kernel
-def find_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
-               edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
-               free: ti.types.ndarray(), box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(),
-               lo: ti.types.ndarray(), hi: ti.types.ndarray(), starts: ti.types.ndarray(),
-               entries: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), n_excluded_vt: ti.i32,
-               excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
-               query_count: ti.types.ndarray(), query_start: ti.types.ndarray(), kind: ti.types.ndarray(),
-               pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
-               q: ti.f64, cell: ti.f64, mask: ti.i32, self_contact: ti.i32, rest_mode: ti.i32,
-               write: ti.template(), dtype: ti.template()):
-    """Queries 0..V-1 are the surface vertices (against the triangles in their cell whose grown box holds
-    them), V..V+E-1 the edges (against the edges of higher index whose grown box meets theirs, in the
-    lowest cell the two ranges share).
-    Without `write`: query_count[query] = its number of pairs. With `write`: its pairs go to
-    kind/pair/primitives (vertex, triangle or edge, edge)/distance from query_start[query] on."""
+def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
+                 edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
+                 free: ti.types.ndarray(), moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
+                 n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
+                 box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
+                 bucket_fill: ti.types.ndarray(), bucket_start: ti.types.ndarray(), entries: ti.types.ndarray(),
+                 partial: ti.types.ndarray(), counter: ti.types.ndarray(), found_query: ti.types.ndarray(),
+                 found_rank: ti.types.ndarray(), found_partner: ti.types.ndarray(),
+                 found_distance: ti.types.ndarray(), query_count: ti.types.ndarray(),
+                 query_start: ti.types.ndarray(), vertex_fill: ti.types.ndarray(), kind: ti.types.ndarray(),
+                 pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
+                 offsets: ti.types.ndarray(), incidence: ti.types.ndarray(), bound: ti.types.ndarray(),
+                 q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32, self_contact: ti.i32,
+                 rest_mode: ti.i32, serial: ti.template(), dtype: ti.template()) -> ti.i32:
+    """Steps 1-5 of the module docstring in one launch. Grid: box_lo/box_hi (T + E,) the items' boxes
+    (triangles, then edges), lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit,
+    bucket_start (B + 1,) and entries the items of each bucket, ascending; moving (T + E,) whether an
+    item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes its pairs
+    with their rank in found_query/found_rank/found_partner/found_distance (capacity C; counter (1,)
+    counts them), then they are written to kind/pair/primitives/distance (C,) at query_start[query] +
+    rank and listed per vertex in offsets (N + 1,)/incidence (4C,) (vertex_fill (N,) zero on entry and
+    exit). serial: prefix sums in one serial loop (CPU). Returns the number of pairs; if they exceed C,
+    nothing past `found` is written; if the grid's entries exceed their buffer, -(entries needed) and
+    no pair is sought."""
     n_vertices = vertices.shape[0]
     n_triangles = triangles.shape[0]
     n_edges = edges.shape[0]
-    for query in range(n_vertices):
-        found = 0
-        slot = 0
-        if ti.static(write):
-            slot = query_start[query]
-        v = vertices[query]
-        p = positions[row, v]
-        c = cell_of(p, cell)
-        h = cell_hash(c, mask)
-        for e in range(starts[h], starts[h + 1]):
-            item = entries[e]
-            if item >= n_triangles:         # the triangles come first in a bucket, then the edges
-                break
-            if first_in_bucket(entries, starts[h], e):
-                t = triangles[item]
-                inside = (box_lo[item] <= p).all() and (p <= box_hi[item]).all()
-                if inside and v != t[0] and v != t[1] and v != t[2]:
-                    n_free = free[v] + free[t[0]] + free[t[1]] + free[t[2]]
-                    key = ti.cast(v, ti.i64) * n_triangles + item
-                    if admissible(body[v] == body[t[0]], n_free, excluded_vt, n_excluded_vt, key,
-                                  self_contact, rest_mode):
-                        d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
-                                              positions[row, t[2]], dtype)
-                        if d < q:
-                            if ti.static(write):
-                                kind[slot + found] = int(PairKind.VERTEX_TRIANGLE)
-                                pair[slot + found] = ti.Vector([v, t[0], t[1], t[2]])
-                                primitives[slot + found] = ti.Vector([v, item])
-                                distance[slot + found] = d
-                            found += 1
-        if ti.static(not write):
-            query_count[query] = found
-    for a in range(n_edges):
-        query = n_vertices + a
-        found = 0
-        slot = 0
-        if ti.static(write):
-            slot = query_start[query]
-        ea = edges[a]
-        pa0 = positions[row, ea[0]]
-        pa1 = positions[row, ea[1]]
-        lower = ti.min(pa0, pa1)
-        upper = ti.max(pa0, pa1)
-        lo_a = cell_of(lower, cell)
-        hi_a = cell_of(upper, cell)
-        for i, j, k in ti.ndrange((lo_a[0], hi_a[0] + 1), (lo_a[1], hi_a[1] + 1), (lo_a[2], hi_a[2] + 1)):
-            c = ti.Vector([i, j, k])
-            h = cell_hash(c, mask)
-            for e in range(first_above(entries, starts[h], starts[h + 1], n_triangles + a), starts[h + 1]):
-                item = entries[e]
-                b = item - n_triangles
-                if first_in_bucket(entries, starts[h], e):
-                    lowest = ti.max(lo_a, lo[item])
-                    eb = edges[b]
-                    overlap = (lower <= box_hi[item]).all() and (box_lo[item] <= upper).all()
-                    disjoint = ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]
-                    if overlap and (lowest == c).all() and disjoint:
-                        n_free = free[ea[0]] + free[ea[1]] + free[eb[0]] + free[eb[1]]
-                        key = ti.cast(a, ti.i64) * n_edges + b
-                        if admissible(body[ea[0]] == body[eb[0]], n_free, excluded_ee, n_excluded_ee, key,
-                                      self_contact, rest_mode):
-                            d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
-                            if d < q:
-                                if ti.static(write):
-                                    kind[slot + found] = int(PairKind.EDGE_EDGE)
-                                    pair[slot + found] = ti.Vector([ea[0], ea[1], eb[0], eb[1]])
-                                    primitives[slot + found] = ti.Vector([a, b])
-                                    distance[slot + found] = d
-                                found += 1
-        if ti.static(not write):
-            query_count[query] = found
-
-
-@ti.kernel
-def count_incidence(pair: ti.types.ndarray(), n_pairs: ti.i32, fill: ti.types.ndarray()):
-    """fill[v] = number of pairs among the first n_pairs that vertex v belongs to."""
-    for v in range(fill.shape[0]):
-        fill[v] = 0
-    for p in range(n_pairs):
+    n_items = lo.shape[0]
+    n_buckets = bucket_fill.shape[0]
+    n = vertex_fill.shape[0]
+    for item in range(n_items):
+        lower, upper = item_box(positions, row, triangles, edges, item, dtype)
+        box_lo[item] = lower
+        box_hi[item] = upper
+        lo[item] = cell_of(lower, cell)
+        hi[item] = cell_of(upper, cell)
+        for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
+                                  (lo[item][2], hi[item][2] + 1)):
+            ti.atomic_add(bucket_fill[cell_hash(ti.Vector([i, j, k]), mask)], 1)
+    scan(bucket_fill, bucket_start, n_buckets, chunk, partial, serial)
+    n_entries = bucket_start[n_buckets]
+    fits = n_entries <= entries.shape[0]
+    counter[0] = 0
+    for item in range(n_items):                 # counts back down to zero, ready for the next detection
+        for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
+                                  (lo[item][2], hi[item][2] + 1)):
+            h = cell_hash(ti.Vector([i, j, k]), mask)
+            e = bucket_start[h] + ti.atomic_sub(bucket_fill[h], 1) - 1
+            if fits:
+                entries[e] = item
+    for h in range(n_buckets if fits else 0):
+        sort_segment(entries, bucket_start[h], bucket_start[h + 1])
+    for query in range(n_vertices + n_edges if fits else 0):
+        rank = 0
+        if query < n_vertices:                  # a surface vertex against the triangles
+            v = vertices[query]
+            still = free[v] == 0 and rest_mode == 0
+            p = positions[row, v]
+            p_lo = p - q
+            p_hi = p + q
+            lo_p = cell_of(p_lo, cell)
+            hi_p = cell_of(p_hi, cell)
+            for i, j, k in ti.ndrange((lo_p[0], hi_p[0] + 1), (lo_p[1], hi_p[1] + 1), (lo_p[2], hi_p[2] + 1)):
+                c = ti.Vector([i, j, k])
+                h = cell_hash(c, mask)
+                begin, end = bucket_start[h], bucket_start[h + 1]
+                for e in range(begin, end):
+                    item = entries[e]
+                    if item >= n_triangles:     # the triangles come first in a bucket, then the edges
+                        break
+                    if ((not still or moving[item] != 0) and first_in_bucket(entries, begin, e)
+                            and (ti.max(lo_p, lo[item]) == c).all()):
+                        t = triangles[item]
+                        near = (p_lo <= box_hi[item]).all() and (box_lo[item] <= p_hi).all()
+                        if near and v != t[0] and v != t[1] and v != t[2]:
+                            key = ti.cast(v, ti.i64) * n_triangles + item
+                            if admissible(body[v] == body[t[0]], excluded_vt, n_excluded_vt, key, self_contact,
+                                          rest_mode):
+                                d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
+                                                      positions[row, t[2]], dtype)
+                                if d < q:
+                                    record(counter, found_query, found_rank, found_partner, found_distance,
+                                           query, rank, item, d)
+                                    rank += 1
+        else:                                   # an edge against the edges of higher index
+            a = query - n_vertices
+            ea = edges[a]
+            still = moving[n_triangles + a] == 0 and rest_mode == 0
+            pa0 = positions[row, ea[0]]
+            pa1 = positions[row, ea[1]]
+            lower = ti.min(pa0, pa1) - q
+            upper = ti.max(pa0, pa1) + q
+            lo_a = cell_of(lower, cell)
+            hi_a = cell_of(upper, cell)
+            for i, j, k in ti.ndrange((lo_a[0], hi_a[0] + 1), (lo_a[1], hi_a[1] + 1), (lo_a[2], hi_a[2] + 1)):
+                c = ti.Vector([i, j, k])
+                h = cell_hash(c, mask)
+                begin, end = bucket_start[h], bucket_start[h + 1]
+                for e in range(first_above(entries, begin, end, n_triangles + a), end):
+                    item = entries[e]
+                    b = item - n_triangles
+                    if ((not still or moving[item] != 0) and first_in_bucket(entries, begin, e)
+                            and (ti.max(lo_a, lo[item]) == c).all()):
+                        eb = edges[b]
+                        near = (lower <= box_hi[item]).all() and (box_lo[item] <= upper).all()
+                        disjoint = ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]
+                        if near and disjoint:
+                            key = ti.cast(a, ti.i64) * n_edges + b
+                            if admissible(body[ea[0]] == body[eb[0]], excluded_ee, n_excluded_ee, key, self_contact,
+                                          rest_mode):
+                                d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
+                                if d < q:
+                                    record(counter, found_query, found_rank, found_partner, found_distance,
+                                           query, rank, b, d)
+                                    rank += 1
+        query_count[query] = rank
+    n_pairs = counter[0]
+    placed = fits and n_pairs <= found_query.shape[0]
+    scan(query_count, query_start, n_vertices + n_edges, chunk, partial, serial)
+    for s in range(n_pairs if placed else 0):
+        query = found_query[s]
+        slot = query_start[query] + found_rank[s]
+        partner = found_partner[s]
+        if query < n_vertices:
+            v = vertices[query]
+            t = triangles[partner]
+            kind[slot] = int(PairKind.VERTEX_TRIANGLE)
+            pair[slot] = ti.Vector([v, t[0], t[1], t[2]])
+            primitives[slot] = ti.Vector([v, partner])
+        else:
+            ea = edges[query - n_vertices]
+            eb = edges[partner]
+            kind[slot] = int(PairKind.EDGE_EDGE)
+            pair[slot] = ti.Vector([ea[0], ea[1], eb[0], eb[1]])
+            primitives[slot] = ti.Vector([query - n_vertices, partner])
+        distance[slot] = found_distance[s]
         for j in ti.static(range(4)):
-            ti.atomic_add(fill[pair[p][j]], 1)
-
-
-@ti.kernel
-def scatter_incidence(pair: ti.types.ndarray(), n_pairs: ti.i32, offsets: ti.types.ndarray(),
-                      fill: ti.types.ndarray(), incidence: ti.types.ndarray(), distance: ti.types.ndarray(),
-                      q: ti.f64, g: ti.f64, bound: ti.types.ndarray(), dtype: ti.template()):
-    """incidence[offsets[v]:offsets[v + 1]]: the pairs of vertex v, ascending; bound[v] = g min(q, their
-    least distance)."""
-    for v in range(fill.shape[0]):
-        fill[v] = 0
-    for p in range(n_pairs):
+            ti.atomic_add(vertex_fill[pair[slot][j]], 1)
+    scan(vertex_fill, offsets, n, chunk, partial, serial)
+    for p in range(n_pairs if placed else 0):   # counts back down to zero, ready for the next detection
         for j in ti.static(range(4)):
             v = pair[p][j]
-            incidence[offsets[v] + ti.atomic_add(fill[v], 1)] = p
-    for v in range(fill.shape[0]):
+            incidence[offsets[v] + ti.atomic_sub(vertex_fill[v], 1) - 1] = p
+    for v in range(n):
         sort_segment(incidence, offsets[v], offsets[v + 1])
         nearest = q
         for s in range(offsets[v], offsets[v + 1]):
             nearest = ti.min(nearest, distance[incidence[s]])
         bound[v] = ti.cast(g * nearest, dtype)
+    return n_pairs if fits else -n_entries
 
 
 class ContactDetector:
@@ -330,7 +354,7 @@ class ContactDetector:
         n = mesh.n_vertices
         V, E, T = len(self.surface.vertices), len(self.surface.edges), len(self.surface.triangles)
         edge_lengths = np.linalg.norm(np.diff(mesh.vertices[self.surface.edges], axis=1)[:, 0], axis=1)
-        self.cell = float(max(edge_lengths.mean(), 2 * contact.query_radius))   # grid cell edge in m
+        self.cell = CELL_PER_EDGE * float(max(edge_lengths.mean(), 2 * contact.query_radius))  # m
         buckets = 1 << int(np.ceil(np.log2(BUCKETS_PER_ITEM * (T + E))))
         self._mask = buckets - 1
         self._vertices = _device(self.surface.vertices, ti.i32)
@@ -339,19 +363,26 @@ class ContactDetector:
         self._triangles = ti.Vector.ndarray(3, ti.i32, T)
         self._triangles.from_numpy(self.surface.triangles)
         self._body = _device(self.bodies, ti.i32)
-        self._free = _device(np.asarray(free, dtype=np.int32), ti.i32)
+        free = np.asarray(free, dtype=bool)
+        self._free = _device(free.astype(np.int32), ti.i32)
+        self._moving = _device(np.concatenate([free[self.surface.triangles].any(axis=1),
+                                               free[self.surface.edges].any(axis=1)]).astype(np.int32), ti.i32)
         self._box_lo = ti.Vector.ndarray(3, dtype, T + E)
         self._box_hi = ti.Vector.ndarray(3, dtype, T + E)
         self._lo = ti.Vector.ndarray(3, ti.i32, T + E)
         self._hi = ti.Vector.ndarray(3, ti.i32, T + E)
-        self._bucket_fill = ti.ndarray(ti.i32, buckets)
+        self._bucket_fill = ti.ndarray(ti.i32, buckets)       # zero between detections
+        self._bucket_fill.fill(0)
         self._bucket_start = ti.ndarray(ti.i32, buckets + 1)
-        self._entries = ti.ndarray(ti.i32, 8 * (T + E))
+        self._entries = ti.ndarray(ti.i32, 4 * (T + E))
+        self._counter = ti.ndarray(ti.i32, 1)
         self._query_count = ti.ndarray(ti.i32, V + E)
         self._query_start = ti.ndarray(ti.i32, V + E + 1)
-        self._vertex_fill = ti.ndarray(ti.i32, n)
+        self._vertex_fill = ti.ndarray(ti.i32, n)             # zero between detections
+        self._vertex_fill.fill(0)
         longest = max(buckets, V + E, n)
         self._chunk = max(64, int(np.sqrt(longest)))
+        self._serial = initialised_arch() == ti.cpu
         self._partial = ti.ndarray(ti.i32, longest // self._chunk + 1)
         self.incidence_offsets = ti.ndarray(ti.i32, n + 1)
         self.bound = ti.ndarray(dtype, n)
@@ -363,7 +394,7 @@ class ContactDetector:
         if contact.self_contact:
             rest = ti.Vector.ndarray(3, dtype, (1, n))
             rest.from_numpy(mesh.vertices[None].astype(np.float32 if dtype == ti.f32 else np.float64))
-            self._find(rest, 0, rest_mode=True)
+            self._detect(rest, 0, rest_mode=True)
             kind, _, primitives, _ = self.pairs()
             keys = [np.unique(primitives[kind == k, 0].astype(np.int64) * size + primitives[kind == k, 1])
                     for k, size in ((PairKind.VERTEX_TRIANGLE, T), (PairKind.EDGE_EDGE, E))]
@@ -373,47 +404,42 @@ class ContactDetector:
 
     def _allocate_pairs(self, capacity: int):
         self._capacity = capacity
+        self._found_query = ti.ndarray(ti.i32, capacity)
+        self._found_rank = ti.ndarray(ti.i32, capacity)
+        self._found_partner = ti.ndarray(ti.i32, capacity)
+        self._found_distance = ti.ndarray(self.dtype, capacity)
         self.kind = ti.ndarray(ti.i32, capacity)
         self.pair = ti.Vector.ndarray(4, ti.i32, capacity)
         self.primitives = ti.Vector.ndarray(2, ti.i32, capacity)
         self.distance = ti.ndarray(self.dtype, capacity)
         self.incidence = ti.ndarray(ti.i32, 4 * capacity)
 
-    def _find(self, positions, row: int, rest_mode: bool):
-        """Steps 1-3 of the module docstring: the grid, then the pairs, counted and then written."""
-        q, V, E = self.contact.query_radius, len(self.surface.vertices), len(self.surface.edges)
-        cell_ranges(positions, row, self._triangles, self._edges, q, self.cell, self._box_lo, self._box_hi,
-                    self._lo, self._hi, self._bucket_fill, self._mask, self.dtype)
-        n_entries = self._scan(self._bucket_fill, self._bucket_start, self._mask + 1)
-        if n_entries > self._entries.shape[0]:
-            self._entries = ti.ndarray(ti.i32, 2 * n_entries)
-        scatter_items(self._lo, self._hi, self._bucket_start, self._bucket_fill, self._entries, self._mask)
-        args = (self._vertices, self._edges, self._triangles, self._body, self._free, self._box_lo,
-                self._box_hi, self._lo, self._hi, self._bucket_start, self._entries, self._excluded_vt,
-                self._n_excluded[0], self._excluded_ee, self._n_excluded[1], self._query_count, self._query_start)
-        flags = (q, self.cell, self._mask, int(self.contact.self_contact), int(rest_mode))
-        find_pairs(positions, row, *args, self.kind, self.pair, self.primitives, self.distance, *flags, False,
-                   self.dtype)
-        self.n_pairs = self._scan(self._query_count, self._query_start, V + E)
-        if self.n_pairs > self._capacity:
-            self._allocate_pairs(2 * self.n_pairs)
-        find_pairs(positions, row, *args, self.kind, self.pair, self.primitives, self.distance, *flags, True,
-                   self.dtype)
-
-    def _scan(self, counts, starts, n: int) -> int:
-        return exclusive_scan(counts, starts, n, self._chunk, self._partial)
+    def _detect(self, positions, row: int, rest_mode: bool) -> int:
+        """One launch of `detect_pairs`, again after growing a buffer that was too small."""
+        c = self.contact
+        while True:
+            found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
+                                 self._free, self._moving, self._excluded_vt, self._n_excluded[0],
+                                 self._excluded_ee, self._n_excluded[1], self._box_lo, self._box_hi, self._lo, self._hi,
+                                 self._bucket_fill, self._bucket_start, self._entries, self._partial,
+                                 self._counter, self._found_query, self._found_rank, self._found_partner,
+                                 self._found_distance, self._query_count, self._query_start, self._vertex_fill,
+                                 self.kind, self.pair, self.primitives, self.distance, self.incidence_offsets,
+                                 self.incidence, self.bound, c.query_radius, c.bound_relaxation, self.cell,
+                                 self._mask, self._chunk, int(c.self_contact), int(rest_mode), self._serial,
+                                 self.dtype)
+            if found < 0:
+                self._entries = ti.ndarray(ti.i32, -2 * found)
+            elif found > self._capacity:
+                self._allocate_pairs(2 * found)
+            else:
+                self.n_pairs = found
+                return found
 
     def detect(self, positions, row: int = 0) -> int:
         """Find the pairs at x = positions[row] ((rows, N) ndarray of 3-vectors), their incidence lists
         and the bounds; returns the number of pairs."""
-        self._find(positions, row, rest_mode=False)
-        n = self.bodies.shape[0]
-        count_incidence(self.pair, self.n_pairs, self._vertex_fill)
-        self._scan(self._vertex_fill, self.incidence_offsets, n)
-        scatter_incidence(self.pair, self.n_pairs, self.incidence_offsets, self._vertex_fill, self.incidence,
-                          self.distance, self.contact.query_radius, self.contact.bound_relaxation, self.bound,
-                          self.dtype)
-        return self.n_pairs
+        return self._detect(positions, row, rest_mode=False)
 
     def pairs(self):
         """(kind (P,) int32, vertices (P, 4) int32, primitives (P, 2) int32, distance (P,)) of the last
