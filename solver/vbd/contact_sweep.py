@@ -22,6 +22,8 @@ int32, set to 1 at every vertex with a pair closer than the radius; jacobi (S,) 
 (colours,): the vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] +
 jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
 serial: run each colour, and the writes after it, on one CPU thread (`vertex_solve.serial_sweep`).
+buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
+loop costs tens of us even when empty) and is the plain sweep plus the clamp.
 """
 from .._ti import ti
 
@@ -74,7 +76,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
                           jacobi_count: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                           friction_speed: ti.f64, n_colors: ti.template(), dtype: ti.template(),
-                          serial: ti.template()) -> ti.i32:
+                          serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
@@ -103,9 +105,10 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                 target[i] = x_new           # a partner in this colour may still read x_i
             else:
                 state[X, i] = x_new
-        ti.loop_config(serialize=serial)
-        for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
-            state[X, jacobi[j]] = target[jacobi[j]]
+        if ti.static(buffered):
+            ti.loop_config(serialize=serial)
+            for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
+                state[X, jacobi[j]] = target[jacobi[j]]
     return hits
 
 
