@@ -59,8 +59,9 @@ def pile_scene(solver, k, apart):
 
 def _median_step(sim, steps):
     """Median seconds of one of `steps` steps and the mean numbers of full detections and of refreshes per
-    step (the contact stage's counters: each step starts with a refresh, as does every iteration after a
-    bound hit; a refresh turns into a full detection when the positions moved too far)."""
+    step (the contact stage's counters: each step starts with two refreshes, at x_n and at the clamped
+    guess, and every iteration after a bound hit with one; a refresh turns into a full detection when
+    the positions moved too far)."""
     stage = sim._contact_stage
     detections, refreshes = stage.detections, stage.refreshes
     samples = []
