@@ -44,9 +44,8 @@ class ContactStage:
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
     state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
     refresh, bound (N,) the bounds it set, in m, and live (P,) int32 its pairs that may come within the
-    radius before the next one (module docstring). `bound_hits` counts the vertices
-    clamped to their bound since construction, `detections` the full detections, `refreshes` the
-    refreshes.
+    radius before the next one (module docstring). `bound_hits` counts the vertices clamped to their
+    bound since construction, `detections` the full detections, `refreshes` the refreshes.
     """
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype):
