@@ -2,9 +2,10 @@
 
 Four measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
   * piles of 1, 8, 27 and 64 soft cubes (2 x 2 x 2 cells, 48 tets each) dropped into a fixed open box of
-    five slabs, friction 0.3: median step time, detections per step and active contacts (pairs closer than
-    the radius) after settling (mean_speed: the cubes' mean vertex speed in m/s then), against the same
-    bodies set apart above the box with no gravity (target: at most 2x);
+    five slabs, friction 0.3: median step time, full detections and refreshes of the bounds per step and
+    active contacts (pairs closer than the radius) after settling (mean_speed: the cubes' mean vertex
+    speed in m/s then), against the same bodies set apart above the box with no gravity (target: at most
+    2x);
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
     contact) on the same settled pile and on the large mesh below (target: at most 1x);
   * ns per tet per VBD iteration of 8 bodies of 3,072 tets (24,576 tets) set apart, no gravity, with
@@ -22,8 +23,9 @@ from benchmarks.common import (init_taichi, output_folder, parser, positive, pri
                                seconds_per_call, table, write_csv)
 
 OUTPUTS = ("contact.csv", "contact.png", "summary.md")
-COLUMNS = ["measurement", "bodies", "tets", "contacts", "mean_speed", "detections_per_step", "step_ms", "apart_step_ms", "step_ratio", "detect_ms",
-           "sweep_ms", "detect_per_sweep", "ns_per_tet_iter_none", "ns_per_tet_iter_contact", "contact_per_none"]
+COLUMNS = ["measurement", "bodies", "tets", "contacts", "mean_speed", "detections_per_step", "refreshes_per_step",
+           "step_ms", "apart_step_ms", "step_ratio", "detect_ms", "sweep_ms", "detect_per_sweep", "ns_per_tet_iter_none",
+           "ns_per_tet_iter_contact", "contact_per_none"]
 SIZE, PITCH, GAP, WALL = 0.08, 0.14, 0.006, 0.02      # m: cube edge, cube spacing, wall gap, wall thickness
 ROUNDS = 3                                            # interleaved timings of the sweep with and without contact
 SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
@@ -56,15 +58,18 @@ def pile_scene(solver, k, apart):
 
 
 def _median_step(sim, steps):
-    """Median seconds of one of `steps` steps and the mean number of detections per step (the contact
-    stage's counter: every iteration after a bound hit detects again)."""
-    detections = sim._contact_stage.detections
+    """Median seconds of one of `steps` steps and the mean numbers of full detections and of refreshes per
+    step (the contact stage's counters: each step starts with two refreshes, at x_n and at the clamped
+    guess, and every iteration after a bound hit with one; a refresh turns into a full detection when
+    the positions moved too far)."""
+    stage = sim._contact_stage
+    detections, refreshes = stage.detections, stage.refreshes
     samples = []
     for _ in range(steps):
         t = time.perf_counter()
         sim.step()
         samples.append(time.perf_counter() - t)
-    return float(np.median(samples)), (sim._contact_stage.detections - detections) / steps
+    return float(np.median(samples)), (stage.detections - detections) / steps, (stage.refreshes - refreshes) / steps
 
 
 def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
@@ -88,16 +93,16 @@ def measure_pile(solver, k, settle, timed, min_seconds):
     fixed = np.arange(n_walls)
     sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=20, contact=contact)
     sim.step(settle)
-    step_s, detections = _median_step(sim, timed)
+    step_s, detections, refreshes = _median_step(sim, timed)
     contacts = sim.contact_count()
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     far, _ = pile_scene(solver, k, apart=True)
     apart = solver.Simulation(far, mat, dt=1 / 60, fixed=fixed, gravity=(0, 0, 0), iterations=20, contact=contact)
     apart.step()
-    apart_s, _ = _median_step(apart, timed)
+    apart_s, _, _ = _median_step(apart, timed)
     detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
     return dict(measurement="pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts, mean_speed=mean_speed,
-                detections_per_step=detections, step_ms=step_s * 1e3,
+                detections_per_step=detections, refreshes_per_step=refreshes, step_ms=step_s * 1e3,
                 apart_step_ms=apart_s * 1e3, step_ratio=step_s / apart_s, detect_ms=detect_s * 1e3,
                 sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
 

@@ -1,31 +1,51 @@
-"""Contact in a VBD simulation (issue 17): the detector, the positions of the last detection and when
-to detect again, the contact term of G and the measurements the scripts read.
+"""Contact in a VBD simulation (issue 17): the detector, the positions its bounds start from, when to
+detect again, the contact term of G and the measurements the scripts read.
 
-Detections happen before any iteration that follows one in which a vertex hit its bound (bounds may
-cost detections, never progress), and at the start of a step (at x_n; the initial guess is then clamped
-to the bounds) and every `Contact.detection_interval` iterations unless no pair can have come closer
-than the radius since the last one: a pair it did not find was at least query_radius q apart, and
-moves closer by at most twice the largest displacement delta since then, so while
-2 delta < q - radius the pairs and bounds of the last detection are still complete and valid (the
-bounds limit the displacement from x_det, wherever the step started).
+A full detection at x_full lists L, every admissible pair closer than the query radius q there, and
+gives each vertex its bound. A refresh at later positions x keeps L and sets new bounds (a Verlet-list
+argument), far cheaper than a detection:
+
+    Delta = max_i |x_i - x_full,i|     (every vertex, fixed and kinematic ones included)
+    b_v   = g min(q - 2 Delta, distance at x of each pair of v in L),   x_det = x
+
+A pair not in L was at least q apart at x_full; each of its points has moved at most Delta since, so it
+is at least q - 2 Delta apart at x. Every pair is thus at least b_v / g apart at x for each of its
+vertices v, and as each vertex then moves at most b_v from x_det = x, with g < 1/2 no two primitives
+can meet: two that were d apart close by at most 2 g d < d. No crossing by construction (OGC [Chen et
+al. 2025]), whatever the refreshes. The pairs of L are the only ones that can be closer than the radius
+r while 2 Delta < q - r; past that L may miss an active pair, and a full detection replaces the refresh.
+
+The same bounds tell which pairs can matter before the next refresh: a pair d_p apart at x_det whose
+vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays
+zero and the sweep skips it (`live`; in a resting pile most pairs of L are such).
+
+When: a full detection whenever positions move outside that margin (checked at every refresh, and every
+`Contact.detection_interval` iterations otherwise); a refresh at the start of every step (at x_n; the
+initial guess is then clamped to the bounds), again before its first iteration (at the clamped guess),
+and before any iteration that follows one in which a vertex hit its bound (bounds may cost refreshes,
+never progress).
 """
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .._ti import ti
+from ..backend import running_on_cpu
 from ..errors import ConfigError
 from ..physics.contact import Contact
 from ..physics.contact_detection import ContactDetector
 from . import contact_sweep
 from .layout import X, X_N
+from .vertex_solve import serial_sweep
 
 
 class ContactStage:
     """The contact of one simulation under one `Contact`.
 
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
-    state. `bound_hits` counts the vertices clamped to their bound since construction, `detections` the
-    detections.
+    state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
+    refresh, bound (N,) the bounds it set, in m, and live (P,) int32 its pairs that may come within the
+    radius before the next one (module docstring). `bound_hits` counts the vertices clamped to their
+    bound since construction, `detections` the full detections, `refreshes` the refreshes.
     """
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype):
@@ -35,57 +55,102 @@ class ContactStage:
         self.detector = ContactDetector(mesh, free, contact, dtype)
         self.bodies = self.detector.bodies
         n = mesh.n_vertices
+        self.x_full = ti.Vector.ndarray(3, dtype, n)
         self.x_det = ti.Vector.ndarray(3, dtype, n)
+        self.bound = ti.ndarray(dtype, n)
+        self._distance = ti.ndarray(dtype, 64)      # per pair, grown with the pair count
+        self.live = ti.ndarray(ti.i32, 64)
+        self._free = ti.ndarray(ti.i32, n)
+        self._free.from_numpy(self.free.astype(np.int32))
         self._target = ti.Vector.ndarray(3, dtype, n)
         self.touched = ti.ndarray(ti.i32, n)
-        self._since_detection = 0
+        self._serial = serial_sweep(mesh.n_tets, running_on_cpu())
+        self._jacobi = None             # the vertices of each colour that have pairs (set at the first iteration)
+        self._jacobi_count = None
+        self._listed = False            # whether they are those of the last detection
+        self._since_check = 0
         self._due = False
         self.bound_hits = 0
         self.detections = 0
+        self.refreshes = 0
 
     def detect(self, state, row: int = X) -> int:
-        """Find the pairs at state[row], make those positions x_det; returns the number of pairs."""
+        """A full detection: find the pairs at state[row], whose positions become x_full and x_det, and
+        set the bounds there; returns the number of pairs."""
         n_pairs = self.detector.detect(state, row)
-        contact_sweep.copy_row(state, row, self.x_det)
-        self._since_detection = 0
-        self._due = False
+        if n_pairs > self.live.shape[0]:
+            self._distance = ti.ndarray(self.dtype, 2 * n_pairs)
+            self.live = ti.ndarray(ti.i32, 2 * n_pairs)
+        contact_sweep.copy_row(state, row, self.x_full)
+        self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
+        self._listed = False
         self.detections += 1
         return n_pairs
 
+    def refresh(self, state, row: int = X) -> None:
+        """New bounds at state[row] from the pairs of the last full detection, or a full detection there
+        when a pair it missed may have come closer than the radius (module docstring)."""
+        c = self.contact
+        if 2 * self._set_bounds(state, row) >= c.query_radius - c.radius:
+            self.detect(state, row)
+        else:
+            self.refreshes += 1
+
+    def _set_bounds(self, state, row: int) -> float:
+        """x_det = state[row], the bounds there and which pairs are live (`contact_sweep.refresh_bounds`);
+        returns Delta in m."""
+        d, c = self.detector, self.contact
+        delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
+                                             d.incidence, c.query_radius, c.radius, c.bound_relaxation,
+                                             self._distance, self.x_det, self.bound, self.live, self._free,
+                                             self.dtype, self._serial)
+        self._since_check = 0
+        self._due = False
+        return delta
+
     def _stale(self, state, row: int) -> bool:
-        """Whether at state[row] a pair the last detection missed may have come closer than the radius
+        """Whether at state[row] a pair the last full detection missed may have come closer than the radius
         (module docstring)."""
         c = self.contact
-        return 2 * contact_sweep.largest_move(state, row, self.x_det) >= c.query_radius - c.radius
+        return 2 * contact_sweep.largest_move(state, row, self.x_full) >= c.query_radius - c.radius
 
     def begin_step(self, state, color_order) -> None:
-        """Detect at x_n when due and clamp the initial guess to the bounds; no vertex has touched yet.
-        Called after the guess is set, so the row X_N holds x_n and X the guess."""
+        """Refresh the bounds at x_n and clamp the initial guess to them, then have the first iteration
+        refresh at the clamped guess, where kinematic vertices already sit at their targets; no vertex has
+        touched yet. Called after the guess is set, so the row X_N holds x_n and X the guess."""
         contact_sweep.clear(self.touched)
-        if self._due or self._stale(state, X_N):
-            self.detect(state, X_N)
-        hits = contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.detector.bound, self.dtype)
-        self.bound_hits += hits
-        self._due = hits > 0
+        self.refresh(state, X_N)
+        self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
+        self._due = True
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
-        """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`), detecting first when
-        due, then the Chebyshev step of weight omega (None: none) for the vertices that have not touched this
-        step; returns the number of bound hits."""
-        if self._since_detection >= self.contact.detection_interval and not self._due:
-            self._due = self._stale(state, X)
-            self._since_detection = 0
+        """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`), refreshing first after a
+        bound hit and detecting first when stale, then the Chebyshev step of weight omega (None: none) for
+        the vertices that have not touched this step; returns the number of bound hits."""
         if self._due:
-            self.detect(state, X)
+            self.refresh(state, X)
+        elif self._since_check >= self.contact.detection_interval:
+            if self._stale(state, X):
+                self.detect(state, X)
+            self._since_check = 0
+        color_order, _, _, _, color_starts = adjacency
         d, c = self.detector, self.contact
-        hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair,
-                                                   d.incidence_offsets, d.incidence, self.x_det, d.bound,
-                                                   self._target, self.touched, c.stiffness, c.radius, c.friction,
-                                                   c.friction_speed, n_colors, dtype)
+        if not self._listed:
+            if self._jacobi is None:
+                self._jacobi = ti.ndarray(ti.i32, color_order.shape[0])
+                self._jacobi_count = ti.ndarray(ti.i32, n_colors)
+            contact_sweep.list_jacobi_vertices(color_order, color_starts, d.incidence_offsets, self._jacobi,
+                                               self._jacobi_count)
+            self._listed = True
+        hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.live,
+                                                   d.incidence_offsets, d.incidence, self.x_det, self.bound,
+                                                   self._target, self.touched, self._jacobi, self._jacobi_count,
+                                                   c.stiffness, c.radius, c.friction, c.friction_speed, n_colors,
+                                                   dtype, self._serial, d.n_pairs > 0)
         if omega is not None:
-            hits += contact_sweep.chebyshev_contact_step(state, adjacency[0], self.touched, self.x_det, d.bound,
+            hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)
-        self._since_detection += 1
+        self._since_check += 1
         self._due = hits > 0
         self.bound_hits += hits
         return hits
@@ -102,7 +167,8 @@ class ContactStage:
         there); returns max_i |f_i| in N."""
         self.detect(state, X)
         d, c = self.detector, self.contact
-        return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, d.incidence_offsets,
+        return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.live,
+                                                             d.incidence_offsets,
                                                              d.incidence, params, f, H, c.stiffness, c.radius,
                                                              c.friction, c.friction_speed, dtype))
 

@@ -1,6 +1,7 @@
 """The VBD sweep with contact between bodies (issue 17): each vertex adds its pairs' barrier force and
-block (and friction) to its f_i, H_i; partners may share a colour, so a colour's new positions go to a
-buffer first and are written after (Jacobi inside a colour, VBD [Chen et al. 2024] Sec. 3.9).
+block (and friction) to its f_i, H_i; partners may share a colour, so a vertex with pairs writes its new
+position to a buffer first, applied once its colour is done (Jacobi inside a colour, VBD [Chen et al. 2024]
+Sec. 3.9). A vertex without pairs is read by no other vertex of its colour and writes at once.
 
 For the vertex i in colour slot k:
 
@@ -9,33 +10,42 @@ For the vertex i in colour slot k:
               + lagged friction of each pair                     (`contact.contact_friction`)
     x_i      <- x_i + H_i^-1 f_i, then clamped to |x_i - x_det,i| <= b_i
 
-where x_det are the positions of the last detection and b the bounds it computed (OGC's conservative
-bounds, g < 1/2: no two primitives can cross before the next detection). One launch per iteration, and
-with Chebyshev acceleration one more (`chebyshev_contact_step`).
+where x_det are the positions at which the bounds b were last set (`refresh_bounds`: OGC's conservative
+bounds, g < 1/2, no two primitives can cross before the next refresh; `contact_state.py`). One launch per
+iteration, and with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
-Arrays besides those of `vertex_solve` (P pairs, N vertices): kind (P,) int32 `PairKind`; pair (P,)
-4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex;
-x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at
-every vertex with a pair closer than the radius. k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,)
+int32 `PairKind`; pair (P,) 4-vectors of vertices; live (P,) int32, 0 for a pair that cannot come within
+the radius before the next refresh (skipped: `refresh_bounds`); incidence_offsets (N + 1,) and incidence
+(4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,)
+int32, set to 1 at every vertex with a pair closer than the radius; jacobi (S,) and jacobi_count
+(colours,): the vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] +
+jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+serial: run each colour, and the writes after it, on one CPU thread (`vertex_solve.serial_sweep`).
+buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
+loop costs tens of us even when empty) and is the plain sweep plus the clamp.
 """
 from .._ti import ti
 
-from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
+from ..physics.contact import (PairKind, barrier, barrier_derivatives, contact_force_hessian, contact_friction,
+                               pair_geometry)
 from .chebyshev import chebyshev_update
 from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV
 from .vertex_solve import force_hessian, newton_step, step_limit
 
 
 @ti.func
-def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
+def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(), live: ti.template(),
                              incidence_offsets: ti.template(), incidence: ti.template(), k_c, r, mu, eps_u,
                              dtype: ti.template()):
-    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its pairs at the current x."""
+    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
     for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
         p = incidence[s]
+        if not live[p]:
+            continue
         v = pair[p]
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < r:
@@ -61,21 +71,23 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
 def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                           offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
-                          pair: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
+                          pair: ti.types.ndarray(), live: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
                           incidence: ti.types.ndarray(), x_det: ti.types.ndarray(), bound: ti.types.ndarray(),
-                          target: ti.types.ndarray(), touched: ti.types.ndarray(), k_c: ti.f64, r: ti.f64,
-                          mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
-                          dtype: ti.template()) -> ti.i32:
+                          target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
+                          jacobi_count: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
+                          friction_speed: ti.f64, n_colors: ti.template(), dtype: ti.template(),
+                          serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     for c in ti.static(range(n_colors)):
+        ti.loop_config(serialize=serial)
         for k in range(color_starts[c], color_starts[c + 1]):
             i = color_order[k]
             f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
             eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-            f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence, kc,
-                                                        rr, mu_c, eps_u, dtype)
+            f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
+                                                        kc, rr, mu_c, eps_u, dtype)
             f += f_c
             H += H_c
             if active > 0:
@@ -89,10 +101,73 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
             if length > bound[i]:
                 x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
                 ti.atomic_add(hits, 1)
-            target[i] = x_new
-        for k in range(color_starts[c], color_starts[c + 1]):
-            state[X, color_order[k]] = target[color_order[k]]
+            if incidence_offsets[i + 1] > incidence_offsets[i]:
+                target[i] = x_new           # a partner in this colour may still read x_i
+            else:
+                state[X, i] = x_new
+        if ti.static(buffered):
+            ti.loop_config(serialize=serial)
+            for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
+                state[X, jacobi[j]] = target[jacobi[j]]
     return hits
+
+
+@ti.kernel
+def list_jacobi_vertices(color_order: ti.types.ndarray(), color_starts: ti.types.ndarray(),
+                         incidence_offsets: ti.types.ndarray(), jacobi: ti.types.ndarray(),
+                         jacobi_count: ti.types.ndarray()):
+    """jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]]: the vertices of colour c that have a pair,
+    in slot order (module docstring)."""
+    for c in range(jacobi_count.shape[0]):
+        n = 0
+        for k in range(color_starts[c], color_starts[c + 1]):
+            i = color_order[k]
+            if incidence_offsets[i + 1] > incidence_offsets[i]:
+                jacobi[color_starts[c] + n] = i
+                n += 1
+        jacobi_count[c] = n
+
+
+@ti.kernel
+def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray(), kind: ti.types.ndarray(),
+                   pair: ti.types.ndarray(), n_pairs: ti.i32, incidence_offsets: ti.types.ndarray(),
+                   incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
+                   x_det: ti.types.ndarray(), bound: ti.types.ndarray(), live: ti.types.ndarray(),
+                   free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.f64:
+    """New bounds at x = state[row] from the first n_pairs pairs, found by the last full detection at
+    x_full (N,) (`contact_state.py`); returns Delta in m. In order:
+      Delta = max_i |x_i - x_full,i| over every vertex (fixed and kinematic ones included);
+      distance[p] = d_p at x, for every pair;
+      b_i = g min(q - 2 Delta, d_p of each pair p of i) and x_det,i = x_i, for every vertex;
+      live[p] = 1 unless d_p >= r + (largest b of its first primitive) + (largest b of its second), b
+      counted 0 at the vertices the sweep does not move (free (N,) int32 is 0 there): until the next
+      refresh such a pair stays beyond the radius, and the sweep skips it."""
+    delta = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
+    for i in range(x_full.shape[0]):
+        ti.atomic_max(delta, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
+    ti.loop_config(serialize=serial)
+    for p in range(n_pairs):
+        v = pair[p]
+        d, w, n = pair_geometry(kind[p], state[row, v[0]], state[row, v[1]], state[row, v[2]], state[row, v[3]],
+                                dtype)
+        distance[p] = d
+    ti.loop_config(serialize=serial)
+    for i in range(x_full.shape[0]):
+        nearest = ti.cast(q - 2 * delta, dtype)
+        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
+            nearest = ti.min(nearest, distance[incidence[s]])
+        bound[i] = ti.cast(g * nearest, dtype)
+        x_det[i] = state[row, i]
+    ti.loop_config(serialize=serial)
+    for p in range(n_pairs):
+        v = pair[p]
+        b = ti.Vector([bound[v[j]] * free[v[j]] for j in ti.static(range(4))])
+        reach = b[0] + ti.max(b[1], b[2], b[3])                     # vertex | triangle
+        if kind[p] == int(PairKind.EDGE_EDGE):
+            reach = ti.max(b[0], b[1]) + ti.max(b[2], b[3])         # edge | edge
+        live[p] = ti.cast(distance[p] < r + reach, ti.i32)
+    return delta
 
 
 @ti.kernel
@@ -135,11 +210,11 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
 
 
 @ti.kernel
-def largest_move(state: ti.types.ndarray(), row: ti.i32, x_det: ti.types.ndarray()) -> ti.f64:
-    """max_i |state[row, i] - x_det,i| in m over all vertices (fixed and kinematic ones included)."""
+def largest_move(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray()) -> ti.f64:
+    """max_i |state[row, i] - x_full,i| in m over all vertices (fixed and kinematic ones included)."""
     result = ti.cast(0.0, ti.f64)
-    for i in range(x_det.shape[0]):
-        ti.atomic_max(result, ti.cast((state[row, i] - x_det[i]).norm(), ti.f64))
+    for i in range(x_full.shape[0]):
+        ti.atomic_max(result, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
     return result
 
 
@@ -171,17 +246,18 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
 
 @ti.kernel
 def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
-                              pair: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
+                              pair: ti.types.ndarray(), live: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
                               incidence: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
                               H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                               friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
-    `vertex_solve.local_systems` filled them); return max_i |f_i| in N."""
+    `vertex_solve.local_systems` filled them), the bounds and live flags set at the current x; return
+    max_i |f_i| in N."""
     result = ti.cast(0.0, ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, incidence,
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
                                                     ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
                                                     eps_u, dtype)
         f_out[i] += f_c

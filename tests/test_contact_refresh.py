@@ -1,0 +1,81 @@
+"""Refreshed contact bounds (solver/vbd/contact_state.py): between full detections a bound hit sets new
+bounds from the pairs L of the last detection instead of detecting again. Judged in numpy at every
+iteration of two cubes driven into each other: the bounds follow the refresh's formula, the pairs of L
+closer than the radius are exactly those a fresh detection finds, the pairs the sweep skips are beyond
+the radius, and no bound lets two primitives meet."""
+import numpy as np
+import pytest
+
+import solver
+from solver.physics.contact import PairKind, pair_geometry_np
+from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+
+pytestmark = pytest.mark.backend
+
+SOFT = solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+
+
+def _active(kind, primitives, distance, radius):
+    """The set of (kind, primitive, primitive) of the pairs closer than radius."""
+    return {(int(k), int(p), int(q)) for k, (p, q), d in zip(kind, primitives, distance) if d < radius}
+
+
+def _reach(kind, vertices, bound):
+    """(P,) the farthest the two primitives of each pair may move towards each other: the largest bound
+    among the vertices of each side (vertex | triangle, or edge | edge), summed."""
+    vt = kind == PairKind.VERTEX_TRIANGLE
+    b = bound[vertices]
+    side_a = np.where(vt, b[:, 0], b[:, :2].max(axis=1))
+    side_b = np.where(vt, b[:, 1:].max(axis=1), b[:, 2:].max(axis=1))
+    return side_a + side_b
+
+
+def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
+    a, b = (solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=o) for o in ((0, 0, 0), (0.112, 0.02, 0.01)))
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e3, radius=0.004, detection_interval=3)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 240, gravity=(0, 0, 0), iterations=8, contact=contact)
+    v = np.zeros((mesh.n_vertices, 3))
+    v[:a.n_vertices, 0], v[a.n_vertices:, 0] = 1.5, -1.5
+    sim.set_velocities(v)
+    stage = sim._contact_stage
+    surface, bodies = stage.detector.surface, stage.bodies
+    free = np.ones(mesh.n_vertices, bool)
+    excluded = rest_exclusions_np(mesh.vertices, surface, bodies, contact)
+    none = np.zeros(0, np.int64)
+    wide = solver.Contact(stiffness=1e3, radius=0.004, query_radius=0.05, self_contact=False)
+    q, g = contact.query_radius, contact.bound_relaxation
+    refreshes, detections, hits = stage.refreshes, stage.detections, stage.bound_hits
+    active_seen = 0
+    steps = 5
+    for _ in range(steps):
+        sim.begin_step()
+        for _ in range(8):
+            sim.run_iterations(1)
+            x, x_det, x_full = sim.positions, stage.x_det.to_numpy(), stage.x_full.to_numpy()
+            bound = stage.bound.to_numpy()
+            kind, vertices, primitives, _ = stage.detector.pairs()
+            # the bounds of the last refresh: g min(q - 2 Delta, distance at x_det of each pair of L)
+            delta = np.linalg.norm(x_det - x_full, axis=1).max()
+            nearest = np.full(mesh.n_vertices, q - 2 * delta)
+            np.minimum.at(nearest, vertices.ravel(), np.repeat(pair_geometry_np(kind, x_det[vertices])[0], 4))
+            np.testing.assert_allclose(bound, g * nearest, rtol=1e-12, atol=0)
+            assert (np.linalg.norm(x - x_det, axis=1) <= bound * (1 + 1e-12)).all()
+            # L's pairs closer than the radius at x are a fresh detection's
+            fresh = find_pairs_np(x, surface, bodies, free, contact, excluded)
+            d = pair_geometry_np(kind, x[vertices])[0]
+            known = _active(kind, primitives, d, contact.radius)
+            assert known == _active(fresh[0], fresh[2], fresh[3], contact.radius)
+            # the pairs the sweep skips until the next refresh are beyond the radius
+            assert (d[stage.live.to_numpy()[:len(d)] == 0] >= contact.radius).all()
+            active_seen = max(active_seen, len(known))
+            # within their bounds no two primitives can meet: the pairs of L, and every pair between the
+            # bodies up to 5 cm apart at x_det
+            d_L = pair_geometry_np(kind, x_det[vertices])[0]
+            assert (_reach(kind, vertices, bound) < d_L).all()
+            w_kind, w_vertices, _, w_d = find_pairs_np(x_det, surface, bodies, free, wide, (none, none))
+            assert (_reach(w_kind, w_vertices, bound) < w_d).all()
+        sim.end_step()
+    assert active_seen > 0
+    assert stage.bound_hits > hits and stage.refreshes - refreshes > steps     # refreshes after hits, not only at x_n
+    assert stage.detections > detections
