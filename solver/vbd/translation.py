@@ -274,7 +274,7 @@ class BodyTranslation:
         self.scale = 1.0
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
-                            det.bound)
+                            contact_stage.bound)
             energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
                            det.n_pairs, c.stiffness, c.radius, self._changes)
             descending = np.flatnonzero(self._changes.to_numpy() <= 0)
