@@ -458,8 +458,8 @@ SCENES.update({scene.name: scene for scene in [
         title="Eight soft balls dropped into an open box (contact, friction 0.3)",
         description="Eight voxelised balls (radius 0.1 m, E = 1e5 Pa) in two layers of 2 x 2 fall into an open box of "
                     "five fixed slabs. Contact between bodies is OGC's two-stage barrier (radius 5 mm, k = 1e4 N/m, "
-                    "friction 0.3); between detections each vertex moves at most 0.45 of its distance to its "
-                    "closest pair, so no ball crosses another or a wall.",
+                    "friction 0.3); between refreshes of the bounds each vertex moves at most 0.45 of its distance to "
+                    "its closest pair, so no ball crosses another or a wall.",
         panels=(Panel(label="8 balls, E = 1e5 Pa, contact friction 0.3", material=_material(1e5),
                       mesh=Bodies(PILE_WALLS + (BALL,) * 8, ((0.0, 0.0, 0.0),) * 5 + PILE_BALLS),
                       iterations=20, fixed=(Outside(upper=(PILE_W, PILE_W, np.inf)),), contact=PILE_CONTACT),),

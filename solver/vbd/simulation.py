@@ -195,7 +195,7 @@ class Simulation(SimulationState):
                     break
             else:
                 implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
-        if self._contact_stage is not None:                     # detect at x_n, clamp the guess to the bounds
+        if self._contact_stage is not None:                     # bounds at x_n, the guess clamped to them
             self._contact_stage.begin_step(self.state, self._adjacency[0])
         self._in_step = True
         self._iteration = 0
