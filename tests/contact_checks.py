@@ -12,6 +12,9 @@ from scipy.spatial import cKDTree
 import solver
 
 
+ROUNDOFF = 1e-10     # signed volumes below this x (longest edge)^3 are coplanar up to round-off
+
+
 def _volume(a, b, c, d):
     """(K,) six times the signed volume of the tets (a, b, c, d), all (K, 3)."""
     return np.einsum("ka,ka->k", np.cross(b - a, c - a), d - a)
@@ -21,7 +24,9 @@ def crossings(x: np.ndarray, tets: np.ndarray, self_contact: bool = True) -> np.
     """(found (K, 2), edges (E, 2), triangles (T, 3)): the surface edges and triangles of the (M, 4) tets,
     and each (edge row, triangle row) where, at positions x (N, 3), the edge's segment passes through the
     triangle (interior or boundary) with its endpoints strictly on either side; between different
-    bodies, and with self_contact also within one body when edge and triangle share no vertex."""
+    bodies, and with self_contact also within one body when edge and triangle share no vertex.
+    "Strictly": each endpoint's signed volume with the triangle exceeds ROUNDOFF times the longest
+    edge cubed, so that an edge and a triangle of one flat face, coplanar up to round-off, never count."""
     n = len(x)
     _, body = connected_components(coo_matrix((np.ones(3 * len(tets)), (np.repeat(tets[:, 0], 3),
                                                                           tets[:, 1:].ravel())), shape=(n, n)),
@@ -40,7 +45,9 @@ def crossings(x: np.ndarray, tets: np.ndarray, self_contact: bool = True) -> np.
     e, t = e[keep], t[keep]
     p, q = x[edges[e, 0]], x[edges[e, 1]]
     a, b, c = (x[triangles[t, k]] for k in range(3))
-    sides = _volume(a, b, c, p) * _volume(a, b, c, q) < 0          # the endpoints on opposite sides
+    floor = ROUNDOFF * (2 * half) ** 3
+    vp, vq = _volume(a, b, c, p), _volume(a, b, c, q)
+    sides = (vp * vq < 0) & (np.abs(vp) > floor) & (np.abs(vq) > floor)     # endpoints on opposite sides
     around = np.stack([_volume(p, q, a, b), _volume(p, q, b, c), _volume(p, q, c, a)], axis=1)
     through = (around >= 0).all(axis=1) | (around <= 0).all(axis=1)
     hit = sides & through

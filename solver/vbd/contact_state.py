@@ -37,6 +37,8 @@ from . import contact_sweep
 from .layout import X, X_N
 from .vertex_solve import serial_sweep
 
+COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
+
 
 class ContactStage:
     """The contact of one simulation under one `Contact`.
@@ -207,9 +209,9 @@ class ContactStage:
 def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray, self_contact: bool):
     """(body a, body b) of the first surface edge that passes through a surface triangle sharing none of
     its vertices (of another body, or of its own with self_contact; not both fixed or kinematic, as the
-    pairs), else None; x (N, 3), free (N,) bool. Decided by
-    signed volumes: the edge's ends lie strictly on either side of the triangle's plane and the edge's
-    line passes inside the triangle."""
+    pairs), else None; x (N, 3), free (N,) bool. Decided by signed volumes: the edge's ends lie strictly
+    (beyond COPLANAR_ROUNDOFF) on either side of the triangle's plane and the edge's line passes inside
+    the triangle."""
     triangles, edges = surface.triangles, surface.edges
     centroid = x[triangles].mean(axis=1)
     reach = np.linalg.norm(x[triangles] - centroid[:, None], axis=2).max()
@@ -228,7 +230,9 @@ def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarra
 
     p, q = x[edges[e, 0]], x[edges[e, 1]]
     a, b, c = (x[triangles[t, k]] for k in range(3))
-    sides = six_volume(a, b, c, p) * six_volume(a, b, c, q) < 0
+    floor = COPLANAR_ROUNDOFF * (2 * half) ** 3     # coplanar up to round-off (one flat face): not a crossing
+    vp, vq = six_volume(a, b, c, p), six_volume(a, b, c, q)
+    sides = (vp * vq < 0) & (np.abs(vp) > floor) & (np.abs(vq) > floor)
     around = np.stack([six_volume(p, q, a, b), six_volume(p, q, b, c), six_volume(p, q, c, a)], axis=1)
     hit = np.flatnonzero(sides & ((around >= 0).all(axis=1) | (around <= 0).all(axis=1)))
     if len(hit) == 0:
