@@ -45,7 +45,7 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds(cells_b, size_b
     for _ in range(36):
         sim.step()
         v = sim.velocities
-        assert np.abs((m[:, None] * v).sum(axis=0)).max() <= 1e-3 * mv
+        assert np.abs((m[:, None] * v).sum(axis=0)).max() <= 1e-9 * mv      # issue: 1e-3; kept to round-off
         kinetic.append(0.5 * np.sum(m * np.sum(v * v, axis=1)))
         assert kinetic[-1] <= 1.01 * kinetic[0], "kinetic energy rose above its start"
         touched = max(touched, sim.contact_count())

@@ -249,6 +249,8 @@ class Simulation(SimulationState):
         if self._settings.translation_correction and self._body_translation.any:
             self._body_translation.apply(self.state, self._mass, self._adjacency, self._params, self._contact_stage,
                                          self.dtype)
+            if self._mesh_translation is not None:      # the bodies' forces sum to zero again: momentum kept
+                self._mesh_translation.apply(self.state, self._mass, self._adjacency, self._params, None, self.dtype)
         moved = implicit_euler.largest_displacement(self.state)
         size = self._size
         if not moved <= 10 * size:

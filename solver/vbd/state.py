@@ -63,7 +63,11 @@ class SimulationState:
         self._H = ti.Matrix.ndarray(3, 3, dtype, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free_mask.astype(np.int32))
-        self._body_translation = BodyTranslation(body_labels(mesh.tets, n), self.free_mask)
+        bodies = body_labels(mesh.tets, n)
+        self._body_translation = BodyTranslation(bodies, self.free_mask)
+        # every vertex free and several bodies: the whole mesh's translation after the bodies' (`translation.py`)
+        self._mesh_translation = (BodyTranslation(np.zeros(n, np.int32), self.free_mask)
+                                  if self.free_mask.all() and bodies.max() > 0 else None)
 
         X, T = mesh.vertices, mesh.tets
         self._grad_rows = grad_rows(X, T)                  # (M, 4, 3): rows 1-3 are Dm^-1

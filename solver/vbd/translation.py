@@ -41,6 +41,12 @@ the largest of 1, 1/2, 1/4, 1/8 for which G does not rise, or dropped (`energy_c
 four in one launch: inertia, ground and the pairs between bodies; the elastic energy does not change).
 Friction is not part of G, so with friction this line search may shorten a step that friction asks for.
 
+Block Jacobi keeps each body's forces in balance, not the whole mesh's: the contact blocks a body
+counts in A_b push the two bodies of a pair by different amounts, so the forces of all bodies no longer
+sum to zero, and a mesh of free bodies would gain momentum h sum_i f_i. Where every vertex is free,
+one translation of the whole mesh follows (the same correction with one body: pairs and elastic
+forces do not change under it, so it zeroes sum_i f_i exactly and G falls).
+
 Arrays (N vertices, B bodies): body (N,) int32; corrected (B,) int32, 1 for a body without fixed or
 kinematic vertices; F (B,) 3-vectors in N, D (B,) 3-vectors in N/m (the diagonal of the inertia and
 ground blocks), K (B,) 3x3 in N/m (the contact blocks), touching (B,) int32 (pairs with other bodies),
