@@ -183,7 +183,7 @@ def main(argv=None):
     write_csv(f"{out}/contact.csv", rows, COLUMNS)
     plot(rows, f"{out}/contact.png")
     with open(f"{out}/summary.md", "w") as fh:
-        fh.write(f"{provenance()}\n\nThe machine's 2 cores were shared with another job during this run; "
+        fh.write(f"{provenance()}\n\nMilliseconds move with the machine's load (2 shared cores here); "
                  f"compare the ratios, not the milliseconds.\n\n{text}\n")
     print_written(args, OUTPUTS)
     return 0

@@ -23,7 +23,7 @@ def _judge(sim, self_contact=True):
     assert sim.min_separation() > 0
 
 
-@pytest.mark.parametrize("cells_b, size_b", [(2, 0.1), (3, 0.07)])
+@pytest.mark.parametrize("cells_b, size_b", [(2, 0.1), pytest.param(3, 0.07, marks=pytest.mark.slow)])
 def test_head_on_conserves_momentum_gains_no_energy_and_rebounds(cells_b, size_b):
     """Two cubes meet head-on, equal or unequal (then the per-body translations differ, and only the
     whole-mesh translation after them keeps the total momentum)."""

@@ -60,9 +60,9 @@ from ..physics.contact import barrier, barrier_derivatives, contact_force_hessia
 from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
+from .vertex_solve import force_hessian
 
 TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
-from .vertex_solve import force_hessian
 
 
 @ti.kernel
