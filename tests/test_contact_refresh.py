@@ -79,3 +79,28 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
     assert active_seen > 0
     assert stage.bound_hits > hits and stage.refreshes - refreshes > steps     # refreshes after hits, not only at x_n
     assert stage.detections > detections
+
+
+def test_the_serial_and_parallel_contact_sweeps_give_the_same_steps():
+    """Small meshes sweep on one CPU thread (`vertex_solve.serial_sweep`). With contact the serial sweep is one
+    loop over the colours, each followed by its buffered writes; vertices of a colour without pairs are read
+    by no other vertex of it, so it gives bit for bit the parallel sweep's steps (friction, bound hits and
+    refreshes included)."""
+    a = solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(0, 0, 0))
+    b = solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(0.03, 0.02, 0.105))
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e3, radius=0.004, friction=0.3)
+    runs = []
+    for serial in (False, True):
+        sim = solver.Simulation(mesh, SOFT, dt=1 / 120, fixed=np.arange(a.n_vertices), iterations=6,
+                                contact=contact)
+        sim._contact_stage._serial = serial
+        v = np.zeros((mesh.n_vertices, 3))
+        v[a.n_vertices:, 2] = -1.0
+        sim.set_velocities(v)
+        sim.step(12)
+        runs.append((sim.positions, sim.contact_count(), sim._contact_stage.bound_hits))
+    (x_parallel, count, hits), (x_serial, _, _) = runs
+    assert count > 0 and hits > 0 and not np.allclose(x_parallel[a.n_vertices:], mesh.vertices[a.n_vertices:])
+    np.testing.assert_array_equal(x_parallel, x_serial)
+    assert runs[0][1:] == runs[1][1:]

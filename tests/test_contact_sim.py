@@ -23,7 +23,7 @@ def _judge(sim, self_contact=True):
     assert sim.min_separation() > 0
 
 
-@pytest.mark.parametrize("cells_b, size_b", [(2, 0.1), pytest.param(3, 0.07, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("cells_b, size_b", [(2, 0.1), (3, 0.07)])
 def test_head_on_conserves_momentum_gains_no_energy_and_rebounds(cells_b, size_b):
     """Two cubes meet head-on, equal or unequal (then the per-body translations differ, and only the
     whole-mesh translation after them keeps the total momentum)."""
@@ -54,7 +54,6 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds(cells_b, size_b
     assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("rho,precision", [(None, "float64"), (0.8, "float64"), (None, "float32")])
 def test_stack_on_a_fixed_slab_never_crosses(rho, precision):
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
@@ -167,7 +166,6 @@ def test_bad_contact_input_is_one_line():
         solver.Simulation(mesh, SOFT, method="pcg").contact = solver.Contact()
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("mu", [0.8, 0.3])
 def test_friction_on_an_incline_sticks_or_slides_at_coulomb_acceleration(mu):
     """A cube on a fixed slab under gravity tilted by 30 degrees, converged steps: it sticks for
@@ -235,7 +233,6 @@ def test_auto_method_picks_vbd_with_contact():
     assert sim.method is solver.Method.VBD and "contact" in sim.method_reason
 
 
-@pytest.mark.slow
 def test_pile_of_eight_cubes_in_a_fixed_open_box_settles_in_two_layers():
     """Acceptance 4 with cubes for balls: 8 soft cubes (two layers of 2 x 2) dropped into an open box of five
     fixed slabs, friction 0.3. Every step: no edge of a cube through a triangle (numpy checker), gaps > 0, no

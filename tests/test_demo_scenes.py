@@ -36,9 +36,7 @@ def test_unknown_scene_is_a_demo_error():
         scenes.get("nope")
 
 
-@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow)
-                                  if n in ("real_shapes", "pile", "self_contact") else n
-                                  for n in sorted(scenes.SCENES)])            # real_shapes: 8 s, pile, self_contact: 6 s
+@pytest.mark.parametrize("name", sorted(scenes.SCENES))
 def test_every_scene_builds_and_steps(name):
     runner = SceneRunner(scenes.get(name))
     for p in runner.panels:
@@ -281,9 +279,7 @@ def _body_boxes(scene, states, viewports):
     return boxes
 
 
-@pytest.mark.parametrize("name, frames", [pytest.param("stiffness_sweep", 36, marks=pytest.mark.slow),
-                                          ("resolution_sweep", 12),
-                                          pytest.param("remedy", 8, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("name, frames", [("stiffness_sweep", 36), ("resolution_sweep", 12), ("remedy", 8)])
 def test_labels_are_never_covered_by_the_bodies(name, frames):
     """Every label piece drawn lies in its panel's label band, and no body or ghost, projected over the
     scene's frames, reaches into a label (the clamped bar end used to hide "off the ghost")."""

@@ -21,7 +21,7 @@ the radius before the next refresh (skipped: `refresh_bounds`); incidence_offset
 int32, set to 1 at every vertex with a pair closer than the radius; jacobi (S,) and jacobi_count
 (colours,): the vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] +
 jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
-serial: run each colour, and the writes after it, on one CPU thread (`vertex_solve.serial_sweep`).
+serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
 """
@@ -67,6 +67,41 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
     return f, H, active
 
 
+@ti.func
+def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order: ti.template(),
+                         offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
+                         kind: ti.template(), pair: ti.template(), live: ti.template(),
+                         incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
+                         bound: ti.template(), target: ti.template(), touched: ti.template(), k, kc, rr, mu_c,
+                         friction_speed, dtype: ti.template()):
+    """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
+    when i has pairs; returns whether it hit its bound."""
+    i = color_order[k]
+    f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+    eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
+    f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
+                                                kc, rr, mu_c, eps_u, dtype)
+    f += f_c
+    H += H_c
+    if active > 0:
+        touched[i] = 1
+    dx = newton_step(f, H, dtype)
+    if params[KEEP_ORIENTATION] > 0:
+        dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
+    x_new = state[X, i] + dx
+    moved = x_new - x_det[i]
+    length = moved.norm()
+    hit = False
+    if length > bound[i]:
+        x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
+        hit = True
+    if incidence_offsets[i + 1] > incidence_offsets[i]:
+        target[i] = x_new           # a partner in this colour may still read x_i
+    else:
+        state[X, i] = x_new
+    return hit
+
+
 @ti.kernel
 def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                           offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
@@ -77,38 +112,32 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           jacobi_count: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                           friction_speed: ti.f64, n_colors: ti.template(), dtype: ti.template(),
                           serial: ti.template(), buffered: ti.template()) -> ti.i32:
-    """One VBD iteration with contact (module docstring); returns how many vertices hit their bound."""
+    """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
+    serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
+    else each colour is a parallel loop, followed by its writes."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
-    for c in ti.static(range(n_colors)):
-        ti.loop_config(serialize=serial)
-        for k in range(color_starts[c], color_starts[c + 1]):
-            i = color_order[k]
-            f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-            eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-            f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
-                                                        kc, rr, mu_c, eps_u, dtype)
-            f += f_c
-            H += H_c
-            if active > 0:
-                touched[i] = 1
-            dx = newton_step(f, H, dtype)
-            if params[KEEP_ORIENTATION] > 0:
-                dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
-            x_new = state[X, i] + dx
-            moved = x_new - x_det[i]
-            length = moved.norm()
-            if length > bound[i]:
-                x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
-                ti.atomic_add(hits, 1)
-            if incidence_offsets[i + 1] > incidence_offsets[i]:
-                target[i] = x_new           # a partner in this colour may still read x_i
-            else:
-                state[X, i] = x_new
-        if ti.static(buffered):
-            ti.loop_config(serialize=serial)
-            for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
-                state[X, jacobi[j]] = target[jacobi[j]]
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for c in range(n_colors):
+            for k in range(color_starts[c], color_starts[c + 1]):
+                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
+                                        incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
+                                        mu_c, friction_speed, dtype):
+                    hits += 1
+            if ti.static(buffered):
+                for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
+                    state[X, jacobi[j]] = target[jacobi[j]]
+    else:
+        for c in ti.static(range(n_colors)):
+            for k in range(color_starts[c], color_starts[c + 1]):
+                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
+                                        incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
+                                        mu_c, friction_speed, dtype):
+                    ti.atomic_add(hits, 1)
+            if ti.static(buffered):
+                for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
+                    state[X, jacobi[j]] = target[jacobi[j]]
     return hits
 
 

@@ -180,12 +180,14 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
         if corrected[body[i]]:
             x, y = ti.cast(state[X, i], ti.f64), ti.cast(state[Y, i], ti.f64)
             m_h2 = inv_h2 * ti.cast(mass[i], ti.f64)
-            for s in ti.static(range(TRIALS)):
-                t = body_shift(i, body, corrected, d, alpha, 0.5 ** s)
+            scale = ti.cast(1.0, ti.f64)
+            for s in range(TRIALS):
+                t = body_shift(i, body, corrected, d, alpha, scale)
                 delta = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
                 if params[GROUND] > 0:
                     delta += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
                 change[s] += delta
+                scale *= 0.5
     for p in range(n_pairs):
         v = pair[p]
         a, b = body[v[0]], body[v[3]]
@@ -193,13 +195,14 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
             x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
             x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
             before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
-            for s in ti.static(range(TRIALS)):
-                scale = 0.5 ** s
+            scale = ti.cast(1.0, ti.f64)
+            for s in range(TRIALS):
                 after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
                                       x1 + body_shift(v[1], body, corrected, d, alpha, scale),
                                       x2 + body_shift(v[2], body, corrected, d, alpha, scale),
                                       x3 + body_shift(v[3], body, corrected, d, alpha, scale))
                 change[s] += barrier(after, k_c, r) - before
+                scale *= 0.5
 
 
 @ti.kernel
