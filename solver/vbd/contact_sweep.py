@@ -102,6 +102,14 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
     return hit
 
 
+@ti.func
+def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
+                   jacobi_count: ti.template(), target: ti.template(), c):
+    """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour)."""
+    for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
+        state[X, jacobi[j]] = target[jacobi[j]]
+
+
 @ti.kernel
 def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                           offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
@@ -126,8 +134,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
-                for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
-                    state[X, jacobi[j]] = target[jacobi[j]]
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
@@ -136,8 +143,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
-                for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
-                    state[X, jacobi[j]] = target[jacobi[j]]
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
     return hits
 
 
