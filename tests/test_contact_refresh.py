@@ -2,13 +2,17 @@
 bounds from the pairs L of the last detection instead of detecting again. Judged in numpy at every
 iteration of two cubes driven into each other: the bounds follow the refresh's formula, the pairs of L
 closer than the radius are exactly those a fresh detection finds, the pairs the sweep skips are beyond
-the radius, and no bound lets two primitives meet."""
+the radius, and no bound lets two primitives meet. The sweep's cheaper skip, by how far the vertices
+moved since the refresh (`contact_sweep.may_be_within`), is checked against exact distances."""
 import numpy as np
 import pytest
 
 import solver
+from solver._ti import ti
 from solver.physics.contact import PairKind, pair_geometry_np
 from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+from solver.vbd.contact_sweep import may_be_within
+from solver.vbd.layout import STATE_ROWS, X
 
 pytestmark = pytest.mark.backend
 
@@ -104,3 +108,47 @@ def test_the_serial_and_parallel_contact_sweeps_give_the_same_steps():
     assert count > 0 and hits > 0 and not np.allclose(x_parallel[a.n_vertices:], mesh.vertices[a.n_vertices:])
     np.testing.assert_array_equal(x_parallel, x_serial)
     assert runs[0][1:] == runs[1][1:]
+
+
+@ti.kernel
+def _may_be_within(state: ti.types.ndarray(), x_det: ti.types.ndarray(), distance: ti.types.ndarray(),
+                   kind: ti.types.ndarray(), pair: ti.types.ndarray(), r: ti.f64, slack: ti.f64,
+                   out: ti.types.ndarray()):
+    for p in range(out.shape[0]):
+        out[p] = ti.cast(may_be_within(state, x_det, distance, kind[p], pair[p], p, r, slack), ti.i32)
+
+
+def test_a_pair_skipped_for_its_vertices_moves_is_beyond_the_radius():
+    """Pairs 5 to 30 mm apart at x_det, each vertex then moved up to 6 mm (for half of the pairs straight
+    towards the other primitive, where the bound is tight): wherever `may_be_within` says no, the exact
+    distance at x is at least r + slack; it says no for many pairs, and yes for many that are within."""
+    rng = np.random.default_rng(7)
+    P, r, slack = 4000, 0.01, 0.002
+    kind = np.where(np.arange(P) % 2 == 0, PairKind.VERTEX_TRIANGLE, PairKind.EDGE_EDGE).astype(np.int32)
+    base = rng.normal(size=(P, 4, 3)) * 0.02
+    d_det, w, n = pair_geometry_np(kind, base)
+    gap = rng.uniform(0.005, 0.03, P)
+    side_a = np.where(kind[:, None] == PairKind.VERTEX_TRIANGLE, [1, 0, 0, 0], [1, 1, 0, 0]).astype(bool)
+    base += np.where(side_a[:, :, None], ((gap - d_det)[:, None] * n)[:, None], 0.0)          # d = gap at x_det
+    d_det = pair_geometry_np(kind, base)[0]
+    np.testing.assert_allclose(d_det, gap, rtol=1e-9)
+    move = rng.normal(size=(P, 4, 3))
+    towards = rng.random(P) < 0.5
+    move[towards] = np.where(side_a[towards][:, :, None], -1.0, 1.0) * n[towards][:, None]
+    move *= (rng.uniform(0, 0.006, (P, 4)) / np.linalg.norm(move, axis=2))[:, :, None]
+    x = base + move
+    state = ti.Vector.ndarray(3, ti.f64, (STATE_ROWS, 4 * P))
+    rows = np.zeros((STATE_ROWS, 4 * P, 3))
+    rows[X] = x.reshape(-1, 3)
+    state.from_numpy(rows)
+    x_det, distance, kinds, pairs, out = (ti.Vector.ndarray(3, ti.f64, 4 * P), ti.ndarray(ti.f64, P),
+                                          ti.ndarray(ti.i32, P), ti.Vector.ndarray(4, ti.i32, P), ti.ndarray(ti.i32, P))
+    x_det.from_numpy(base.reshape(-1, 3))
+    distance.from_numpy(d_det)
+    kinds.from_numpy(kind)
+    pairs.from_numpy(np.arange(4 * P, dtype=np.int32).reshape(P, 4))
+    _may_be_within(state, x_det, distance, kinds, pairs, r, slack, out)
+    maybe = out.to_numpy().astype(bool)
+    d = pair_geometry_np(kind, x)[0]
+    assert (d[~maybe] >= r + slack).all()
+    assert (~maybe).sum() > P // 4 and (maybe & (d < r + slack)).sum() > P // 4

@@ -45,9 +45,10 @@ class ContactStage:
 
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
     state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
-    refresh, bound (N,) the bounds it set, in m, and live (P,) int32 its pairs that may come within the
-    radius before the next one (module docstring). `bound_hits` counts the vertices clamped to their
-    bound since construction, `detections` the full detections, `refreshes` the refreshes.
+    refresh, bound (N,) the bounds it set, in m, distance (P,) the pairs' distances there, in m, and live
+    (P,) int32 its pairs that may come within the radius before the next one (module docstring).
+    `bound_hits` counts the vertices clamped to their bound since construction, `detections` the full
+    detections, `refreshes` the refreshes.
     """
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype):
@@ -60,7 +61,7 @@ class ContactStage:
         self.x_full = ti.Vector.ndarray(3, dtype, n)
         self.x_det = ti.Vector.ndarray(3, dtype, n)
         self.bound = ti.ndarray(dtype, n)
-        self._distance = ti.ndarray(dtype, 64)      # per pair, grown with the pair count
+        self.distance = ti.ndarray(dtype, 64)       # per pair, grown with the pair count
         self.live = ti.ndarray(ti.i32, 64)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free.astype(np.int32))
@@ -81,7 +82,7 @@ class ContactStage:
         set the bounds there; returns the number of pairs."""
         n_pairs = self.detector.detect(state, row)
         if n_pairs > self.live.shape[0]:
-            self._distance = ti.ndarray(self.dtype, 2 * n_pairs)
+            self.distance = ti.ndarray(self.dtype, 2 * n_pairs)
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
         contact_sweep.copy_row(state, row, self.x_full)
         self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
@@ -104,7 +105,7 @@ class ContactStage:
         d, c = self.detector, self.contact
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
-                                             self._distance, self.x_det, self.bound, self.live, self._free,
+                                             self.distance, self.x_det, self.bound, self.live, self._free,
                                              self.dtype, self._serial)
         self._since_check = 0
         self._due = False
@@ -145,8 +146,8 @@ class ContactStage:
                                                self._jacobi_count)
             self._listed = True
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.live,
-                                                   d.incidence_offsets, d.incidence, self.x_det, self.bound,
-                                                   self._target, self.touched, self._jacobi, self._jacobi_count,
+                                                   self.distance, d.incidence_offsets, d.incidence, self.x_det,
+                                                   self.bound, self._target, self.touched, self._jacobi, self._jacobi_count,
                                                    c.stiffness, c.radius, c.friction, c.friction_speed, n_colors,
                                                    dtype, self._serial, d.n_pairs > 0)
         if omega is not None:
@@ -170,8 +171,8 @@ class ContactStage:
         self.detect(state, X)
         d, c = self.detector, self.contact
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.live,
-                                                             d.incidence_offsets,
-                                                             d.incidence, params, f, H, c.stiffness, c.radius,
+                                                             self.distance, d.incidence_offsets, d.incidence,
+                                                             self.x_det, params, f, H, c.stiffness, c.radius,
                                                              c.friction, c.friction_speed, dtype))
 
     def distances(self, state) -> np.ndarray:

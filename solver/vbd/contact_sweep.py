@@ -16,8 +16,9 @@ iteration, and with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
 Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,)
 int32 `PairKind`; pair (P,) 4-vectors of vertices; live (P,) int32, 0 for a pair that cannot come within
-the radius before the next refresh (skipped: `refresh_bounds`); incidence_offsets (N + 1,) and incidence
-(4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,)
+the radius before the next refresh (skipped: `refresh_bounds`); distance (P,) m, each pair's distance at
+x_det (a live pair whose vertices have not moved far enough since is skipped too: `may_be_within`);
+incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,)
 int32, set to 1 at every vertex with a pair closer than the radius; jacobi (S,) and jacobi_count
 (colours,): the vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] +
 jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
@@ -35,10 +36,23 @@ from .vertex_solve import force_hessian, newton_step, step_limit
 
 
 @ti.func
+def may_be_within(state: ti.template(), x_det: ti.template(), distance: ti.template(), kind, v, p, r, slack):
+    """Whether pair p (vertices v) may be closer than r + slack at the current x: it was distance[p] apart at
+    x_det, and the distance between two primitives shrinks by at most the largest move of a vertex of each
+    (the closest points are convex combinations of their vertices). Costs eight reads, not a distance."""
+    m = ti.Vector([(state[X, v[j]] - x_det[v[j]]).norm_sqr() for j in ti.static(range(4))])
+    reach = ti.sqrt(m[0]) + ti.sqrt(ti.max(m[1], m[2], m[3]))                 # vertex | triangle
+    if kind == int(PairKind.EDGE_EDGE):
+        reach = ti.sqrt(ti.max(m[0], m[1])) + ti.sqrt(ti.max(m[2], m[3]))     # edge | edge
+    return distance[p] - reach < r + slack
+
+
+@ti.func
 def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(), live: ti.template(),
-                             incidence_offsets: ti.template(), incidence: ti.template(), k_c, r, mu, eps_u,
-                             dtype: ti.template()):
-    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x."""
+                             incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
+                             distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
+    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x;
+    a pair that cannot be within r (`may_be_within`) is skipped before its distance is computed."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
@@ -47,6 +61,8 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
         if not live[p]:
             continue
         v = pair[p]
+        if not may_be_within(state, x_det, distance, kind[p], v, p, r, 0):
+            continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < r:
             w_i = ti.cast(0, dtype)
@@ -70,7 +86,7 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
 @ti.func
 def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order: ti.template(),
                          offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
-                         kind: ti.template(), pair: ti.template(), live: ti.template(),
+                         kind: ti.template(), pair: ti.template(), live: ti.template(), distance: ti.template(),
                          incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
                          bound: ti.template(), target: ti.template(), touched: ti.template(), k, kc, rr, mu_c,
                          friction_speed, dtype: ti.template()):
@@ -79,8 +95,8 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-    f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
-                                                kc, rr, mu_c, eps_u, dtype)
+    f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence, x_det,
+                                                distance, kc, rr, mu_c, eps_u, dtype)
     f += f_c
     H += H_c
     if active > 0:
@@ -114,9 +130,9 @@ def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti
 def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                           offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
-                          pair: ti.types.ndarray(), live: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
-                          incidence: ti.types.ndarray(), x_det: ti.types.ndarray(), bound: ti.types.ndarray(),
-                          target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
+                          pair: ti.types.ndarray(), live: ti.types.ndarray(), distance: ti.types.ndarray(),
+                          incidence_offsets: ti.types.ndarray(), incidence: ti.types.ndarray(),
+                          x_det: ti.types.ndarray(), bound: ti.types.ndarray(), target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
                           jacobi_count: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                           friction_speed: ti.f64, n_colors: ti.template(), dtype: ti.template(),
                           serial: ti.template(), buffered: ti.template()) -> ti.i32:
@@ -130,7 +146,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in range(n_colors):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
+                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
                                         mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
@@ -139,7 +155,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
+                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
                                         mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
@@ -281,19 +297,21 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
 
 @ti.kernel
 def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
-                              pair: ti.types.ndarray(), live: ti.types.ndarray(), incidence_offsets: ti.types.ndarray(),
-                              incidence: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
+                              pair: ti.types.ndarray(), live: ti.types.ndarray(), distance: ti.types.ndarray(),
+                              incidence_offsets: ti.types.ndarray(), incidence: ti.types.ndarray(),
+                              x_det: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
                               H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                               friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
-    `vertex_solve.local_systems` filled them), the bounds and live flags set at the current x; return
+    `vertex_solve.local_systems` filled them), the bounds, live flags and distances set at the current x
+    (x_det = x); return
     max_i |f_i| in N."""
     result = ti.cast(0.0, ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence,
-                                                    ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence, x_det,
+                                                    distance, ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
                                                     eps_u, dtype)
         f_out[i] += f_c
         H_out[i] += H_c

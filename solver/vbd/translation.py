@@ -60,6 +60,7 @@ from ..physics.contact import barrier, barrier_derivatives, contact_force_hessia
 from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
+from .contact_sweep import may_be_within
 from .vertex_solve import force_hessian
 
 TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
@@ -94,19 +95,23 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
 
 @ti.kernel
 def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.types.ndarray(), n_pairs: ti.i32,
-              body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(),
+              x_det: ti.types.ndarray(), distance: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(),
               K: ti.types.ndarray(), touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64,
               r: ti.f64, mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()):
     """Add to F_b and K_b of each corrected body its pairs with other bodies closer than r, the body acting
     on the pair as one vertex of weight s_b = sum of the pair's weights on its side (module docstring);
-    pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them."""
+    pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them, distance (P,) in m
+    at the positions x_det (N,) of the last refresh (pairs that cannot be within r are skipped:
+    `contact_sweep.may_be_within`)."""
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     for p in range(n_pairs):
         v = pair[p]
-        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         ends = ti.Vector([body[v[0]], body[v[3]]])
-        if d < rr and ends[0] != ends[1]:
+        if ends[0] == ends[1] or not may_be_within(state, x_det, distance, kind[p], v, p, rr, 0):
+            continue
+        d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
+        if d < rr:
             s = ti.cast(0, dtype)
             u = ti.Vector.zero(dtype, 3)
             for j in ti.static(range(4)):
@@ -167,10 +172,13 @@ def pair_distance(kind, x0, x1, x2, x3):
 def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                    params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
                    d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
-                   pair: ti.types.ndarray(), n_pairs: ti.i32, k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
+                   pair: ti.types.ndarray(), n_pairs: ti.i32, x_det: ti.types.ndarray(), distance: ti.types.ndarray(),
+                   k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
     """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
     corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
-    elastic energy and the pairs within a body do not change under a translation of the body)."""
+    elastic energy and the pairs within a body do not change under a translation of the body). A pair that
+    cannot come within r under the largest of the translations is skipped (`contact_sweep.may_be_within`;
+    x_det, distance as for `pair_sums`)."""
     for s in ti.static(range(TRIALS)):
         change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
@@ -191,7 +199,10 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
     for p in range(n_pairs):
         v = pair[p]
         a, b = body[v[0]], body[v[3]]
-        if a != b and (corrected[a] or corrected[b]):
+        largest = (body_shift(v[0], body, corrected, d, alpha, 1.0).norm()          # the scale-1 translations
+                   + body_shift(v[3], body, corrected, d, alpha, 1.0).norm())
+        if a != b and (corrected[a] or corrected[b]) and may_be_within(state, x_det, distance, kind[p], v, p, r,
+                                                                       largest):
             x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
             x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
             before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
@@ -277,15 +288,17 @@ class BodyTranslation:
                   self.touching, dtype)
         if contact_stage is not None:
             det, c = contact_stage.detector, contact_stage.contact
-            pair_sums(state, det.kind, det.pair, det.n_pairs, body, corrected, self.F, self.K, self.touching, params,
-                      c.stiffness, c.radius, c.friction, c.friction_speed, dtype)
+            pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance, body,
+                      corrected, self.F, self.K, self.touching, params, c.stiffness, c.radius, c.friction,
+                      c.friction_speed, dtype)
         body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha)
         self.scale = 1.0
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
                             contact_stage.bound)
             energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
-                           det.n_pairs, c.stiffness, c.radius, self._changes)
+                           det.n_pairs, contact_stage.x_det, contact_stage.distance, c.stiffness, c.radius,
+                           self._changes)
             descending = np.flatnonzero(self._changes.to_numpy() <= 0)
             self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
         translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
