@@ -6,9 +6,11 @@ Four measurements, all float64 on the CPU, ratios taken within one run (issue 17
     active contacts (pairs closer than the radius) after 3 s of settling (mean_speed: the cubes' mean vertex
     speed in m/s then; after 1.5 s the 64 cubes still moved at 0.03 m/s, and their step cost 1.5x a settled
     one's, as hits and refreshes followed the motion), against the same bodies set apart above the box
-    with no gravity (target: at most 2x);
+    with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
+    ratios of the steps taken in turn);
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
-    contact) on the same settled pile and on the large mesh below (target: at most 1x);
+    contact) on the same settled pile and on the large mesh below, the fastest of 3 interleaved timings
+    of each (target: at most 1x);
   * ns per tet per VBD iteration of 8 bodies of 3,072 tets (24,576 tets) set apart, no gravity, with
     contact on (nothing within query_radius) and with contact=None, the fastest of 3 interleaved timings
     of each (target: at most 1.25x).
@@ -58,19 +60,24 @@ def pile_scene(solver, k, apart):
     return solver.merge_meshes(walls + cubes), sum(w.n_vertices for w in walls)
 
 
-def _median_step(sim, steps):
-    """Median seconds of one of `steps` steps and the mean numbers of full detections and of refreshes per
-    step (the contact stage's counters: each step starts with two refreshes, at x_n and at the clamped
-    guess, and every iteration after a bound hit with one; a refresh turns into a full detection when
-    the positions moved too far)."""
-    stage = sim._contact_stage
-    detections, refreshes = stage.detections, stage.refreshes
-    samples = []
-    for _ in range(steps):
-        t = time.perf_counter()
-        sim.step()
-        samples.append(time.perf_counter() - t)
-    return float(np.median(samples)), (stage.detections - detections) / steps, (stage.refreshes - refreshes) / steps
+def _steps_in_turn(sims, steps):
+    """Step each simulation in turn, `steps` times: per simulation the median seconds of a step and the mean
+    numbers of full detections and of refreshes per step (the contact stage's counters: each step starts
+    with two refreshes, at x_n and at the clamped guess, and every iteration after a bound hit with one;
+    a refresh turns into a full detection when the positions moved too far); and the median over the
+    rounds of the first simulation's step over the second's. Taken in turn, a drift of the machine's
+    speed moves both alike."""
+    stages = [sim._contact_stage for sim in sims]
+    counters = [(stage.detections, stage.refreshes) for stage in stages]
+    samples = np.zeros((steps, len(sims)))
+    for row in samples:
+        for j, sim in enumerate(sims):
+            t = time.perf_counter()
+            sim.step()
+            row[j] = time.perf_counter() - t
+    per_sim = [(float(np.median(samples[:, j])), (stage.detections - d) / steps, (stage.refreshes - r) / steps)
+               for j, (stage, (d, r)) in enumerate(zip(stages, counters))]
+    return per_sim, float(np.median(samples[:, 0] / samples[:, 1]))
 
 
 def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
@@ -79,12 +86,14 @@ def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
     from solver.vbd.layout import X
 
     detector = ContactDetector(mesh, sim.free_mask, sim.contact, sim.dtype)
-    detect_s, _ = seconds_per_call(lambda k: [detector.detect(sim.state, X) for _ in range(k)], min_seconds)
     plain = solver.Simulation(mesh, solver.Material(**SOFT), dt=sim.dt, fixed=fixed, iterations=1)
     plain.set_positions(sim.positions)
     plain.begin_step()
-    sweep_s, _ = seconds_per_call(plain.run_iterations, min_seconds)
-    return detect_s, sweep_s
+    detect_s, sweep_s = [], []
+    for _ in range(ROUNDS):                  # interleaved, the fastest round of each: the machine is shared
+        detect_s.append(seconds_per_call(lambda k: [detector.detect(sim.state, X) for _ in range(k)], min_seconds)[0])
+        sweep_s.append(seconds_per_call(plain.run_iterations, min_seconds)[0])
+    return min(detect_s), min(sweep_s)
 
 
 def measure_pile(solver, k, settle, timed, min_seconds):
@@ -94,17 +103,16 @@ def measure_pile(solver, k, settle, timed, min_seconds):
     fixed = np.arange(n_walls)
     sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=20, contact=contact)
     sim.step(settle)
-    step_s, detections, refreshes = _median_step(sim, timed)
-    contacts = sim.contact_count()
-    mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     far, _ = pile_scene(solver, k, apart=True)
     apart = solver.Simulation(far, mat, dt=1 / 60, fixed=fixed, gravity=(0, 0, 0), iterations=20, contact=contact)
     apart.step()
-    apart_s, _, _ = _median_step(apart, timed)
+    ((step_s, detections, refreshes), (apart_s, _, _)), ratio = _steps_in_turn((sim, apart), timed)
+    contacts = sim.contact_count()
+    mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
     return dict(measurement="pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts, mean_speed=mean_speed,
                 detections_per_step=detections, refreshes_per_step=refreshes, step_ms=step_s * 1e3,
-                apart_step_ms=apart_s * 1e3, step_ratio=step_s / apart_s, detect_ms=detect_s * 1e3,
+                apart_step_ms=apart_s * 1e3, step_ratio=ratio, detect_ms=detect_s * 1e3,
                 sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
 
 
@@ -162,7 +170,7 @@ def plot(rows, path):
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/contact")
     p.add_argument("--settle", type=positive(int), default=180, help="steps (1/60 s) each pile falls before timing")
-    p.add_argument("--steps", type=positive(int), default=20, help="timed steps per pile and per set-apart scene")
+    p.add_argument("--steps", type=positive(int), default=40, help="timed steps per pile and per set-apart scene")
     p.add_argument("--min-seconds", type=positive(float), default=0.5, help="least time per timing")
     p.add_argument("--cells", type=positive(int), default=8,
                    help="cells per side of each of the 8 set-apart bodies (6 tets per cell; 8: 24,576 tets)")
