@@ -196,12 +196,18 @@ def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
     return "\n".join(lines)
 
 
-def provenance(argv=None) -> str:
-    """One line saying which command produced a result, when, and on what."""
+def provenance(argv=None, root=ROOT) -> str:
+    """One line saying which command produced a result, when, and on what: the commit of the checkout at
+    root, marked "with uncommitted changes" when a tracked file outside benchmarks/results differs from it."""
     argv = sys.argv if argv is None else argv
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
                                 text=True, timeout=5).stdout.strip()
+        edited = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                 ":(exclude)benchmarks/results"], cwd=root, capture_output=True, text=True,
+                                timeout=5).stdout.strip()
+        if commit and edited:
+            commit += " with uncommitted changes"
     except Exception:
         commit = "?"
     cmd = "python -m benchmarks." + os.path.splitext(os.path.basename(argv[0]))[0] + " " + " ".join(argv[1:])

@@ -108,6 +108,29 @@ def test_contact_quick(tmp_path):
     assert (tmp_path / "contact.png").stat().st_size > 0
 
 
+def test_provenance_names_the_commit_and_says_when_the_code_was_edited(tmp_path):
+    """A results file names the commit it was measured on; edited code makes that a lie unless said. New
+    results beside it (benchmarks/results) are not an edit."""
+    from benchmarks.common import provenance
+
+    def git(*args):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path, check=True,
+                       capture_output=True)
+
+    (tmp_path / "benchmarks" / "results").mkdir(parents=True)
+    (tmp_path / "solver.py").write_text("a = 1\n")
+    (tmp_path / "benchmarks" / "results" / "r.csv").write_text("x\n1\n")
+    git("init", "-q")
+    git("add", "-A")
+    git("commit", "-qm", "first")
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=tmp_path, capture_output=True,
+                            text=True).stdout.strip()
+    (tmp_path / "benchmarks" / "results" / "r.csv").write_text("x\n2\n")
+    assert f"commit {commit}, " in provenance(["throughput.py"], root=tmp_path)
+    (tmp_path / "solver.py").write_text("a = 2\n")
+    assert f"commit {commit} with uncommitted changes, " in provenance(["throughput.py"], root=tmp_path)
+
+
 @pytest.mark.slow
 def test_skip_quick(tmp_path):
     run_quick("skip", tmp_path)
