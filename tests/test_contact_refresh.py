@@ -126,7 +126,7 @@ def test_a_pair_skipped_for_its_vertices_moves_is_beyond_the_radius():
     P, r, slack = 4000, 0.01, 0.002
     kind = np.where(np.arange(P) % 2 == 0, PairKind.VERTEX_TRIANGLE, PairKind.EDGE_EDGE).astype(np.int32)
     base = rng.normal(size=(P, 4, 3)) * 0.02
-    d_det, w, n = pair_geometry_np(kind, base)
+    d_det, _, n = pair_geometry_np(kind, base)
     gap = rng.uniform(0.005, 0.03, P)
     side_a = np.where(kind[:, None] == PairKind.VERTEX_TRIANGLE, [1, 0, 0, 0], [1, 1, 0, 0]).astype(bool)
     base += np.where(side_a[:, :, None], ((gap - d_det)[:, None] * n)[:, None], 0.0)          # d = gap at x_det

@@ -147,9 +147,9 @@ class ContactStage:
             self._listed = True
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.live,
                                                    self.distance, d.incidence_offsets, d.incidence, self.x_det,
-                                                   self.bound, self._target, self.touched, self._jacobi, self._jacobi_count,
-                                                   c.stiffness, c.radius, c.friction, c.friction_speed, n_colors,
-                                                   dtype, self._serial, d.n_pairs > 0)
+                                                   self.bound, self._target, self.touched, self._jacobi,
+                                                   self._jacobi_count, c.stiffness, c.radius, c.friction,
+                                                   c.friction_speed, n_colors, dtype, self._serial, d.n_pairs > 0)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)

@@ -18,10 +18,11 @@ Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in 
 int32 `PairKind`; pair (P,) 4-vectors of vertices; live (P,) int32, 0 for a pair that cannot come within
 the radius before the next refresh (skipped: `refresh_bounds`); distance (P,) m, each pair's distance at
 x_det (a live pair whose vertices have not moved far enough since is skipped too: `may_be_within`);
-incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,)
-int32, set to 1 at every vertex with a pair closer than the radius; jacobi (S,) and jacobi_count
-(colours,): the vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] +
-jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,)
+m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair closer than
+the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs are
+jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
+friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
@@ -48,6 +49,16 @@ def may_be_within(state: ti.template(), x_det: ti.template(), distance: ti.templ
 
 
 @ti.func
+def pair_slip(state: ti.template(), v, w, dtype: ti.template()):
+    """u = sum_j w_j (x_j - x_n,j) (3,): the pair's relative displacement this step, which its lagged
+    friction opposes (`contact.contact_friction`); v the pair's vertices, w their weights."""
+    u = ti.Vector.zero(dtype, 3)
+    for j in ti.static(range(4)):
+        u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
+    return u
+
+
+@ti.func
 def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(), live: ti.template(),
                              incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
                              distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
@@ -66,17 +77,15 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < r:
             w_i = ti.cast(0, dtype)
-            u = ti.Vector.zero(dtype, 3)
             for j in ti.static(range(4)):
                 if v[j] == i:
                     w_i = w[j]
-                u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
             f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
             f += ti.cast(f_c, dtype)
             H += ti.cast(H_c, dtype)
             if mu > 0:
                 db, d2b = barrier_derivatives(d, k_c, r)
-                f_f, H_f = contact_friction(u, n, w_i, -db, mu, eps_u, dtype)
+                f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu, eps_u, dtype)
                 f += ti.cast(f_f, dtype)
                 H += ti.cast(H_f, dtype)
             active += 1
@@ -132,10 +141,10 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
                           pair: ti.types.ndarray(), live: ti.types.ndarray(), distance: ti.types.ndarray(),
                           incidence_offsets: ti.types.ndarray(), incidence: ti.types.ndarray(),
-                          x_det: ti.types.ndarray(), bound: ti.types.ndarray(), target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
-                          jacobi_count: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
-                          friction_speed: ti.f64, n_colors: ti.template(), dtype: ti.template(),
-                          serial: ti.template(), buffered: ti.template()) -> ti.i32:
+                          x_det: ti.types.ndarray(), bound: ti.types.ndarray(), target: ti.types.ndarray(),
+                          touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
+                          k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
+                          dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
     serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
     else each colour is a parallel loop, followed by its writes."""
@@ -146,8 +155,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in range(n_colors):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
-                                        mu_c, friction_speed, dtype):
+                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k,
+                                        kc, rr, mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
@@ -155,8 +164,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k, kc, rr,
-                                        mu_c, friction_speed, dtype):
+                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k,
+                                        kc, rr, mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
@@ -304,15 +313,14 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
                               friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live flags and distances set at the current x
-    (x_det = x); return
-    max_i |f_i| in N."""
+    (x_det = x); return max_i |f_i| in N."""
     result = ti.cast(0.0, ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
         f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence, x_det,
-                                                    distance, ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype),
-                                                    eps_u, dtype)
+                                                    distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
+                                                    ti.cast(mu, dtype), eps_u, dtype)
         f_out[i] += f_c
         H_out[i] += H_c
         ti.atomic_max(result, ti.cast(f_out[i].norm(), ti.f64))

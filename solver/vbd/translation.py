@@ -59,8 +59,8 @@ from .._ti import ti
 from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
 from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
-from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, X_N, Y
-from .contact_sweep import may_be_within
+from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, Y
+from .contact_sweep import may_be_within, pair_slip
 from .vertex_solve import force_hessian
 
 TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
@@ -95,9 +95,10 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
 
 @ti.kernel
 def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.types.ndarray(), n_pairs: ti.i32,
-              x_det: ti.types.ndarray(), distance: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(),
-              K: ti.types.ndarray(), touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64,
-              r: ti.f64, mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()):
+              x_det: ti.types.ndarray(), distance: ti.types.ndarray(), body: ti.types.ndarray(),
+              corrected: ti.types.ndarray(), F: ti.types.ndarray(), K: ti.types.ndarray(),
+              touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
+              friction_speed: ti.f64, dtype: ti.template()):
     """Add to F_b and K_b of each corrected body its pairs with other bodies closer than r, the body acting
     on the pair as one vertex of weight s_b = sum of the pair's weights on its side (module docstring);
     pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them, distance (P,) in m
@@ -113,11 +114,10 @@ def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.type
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < rr:
             s = ti.cast(0, dtype)
-            u = ti.Vector.zero(dtype, 3)
             for j in ti.static(range(4)):
                 if body[v[j]] == ends[0]:
                     s += w[j]
-                u += w[j] * (state[X, v[j]] - state[X_N, v[j]])
+            u = pair_slip(state, v, w, dtype)
             for side in ti.static(range(2)):
                 c = ends[side]
                 if corrected[c]:
