@@ -220,10 +220,18 @@ def test_coloring_scene_needs_only_the_coloring():
     np.testing.assert_array_equal(state.rgb[pinned], np.tile(FIXED_RGB, (pinned.sum(), 1)))
 
 
+REMEDY_PLAIN_ITERATIONS = 150   # the remedy scene's plain VBD is judged at this budget (below)
+
+
 def test_remedy_scene_converges_where_plain_vbd_does_not():
     """The remedy scene: two-level VBD and plain VBD on the stiff bar, plain VBD given the remedy's wall
     time per step in iterations. Plain VBD's step error stays large, the two-level one's is far lower;
-    the labels say method, budget and time per step, and a frame renders headless."""
+    the labels say method, budget and time per step, and a frame renders headless.
+
+    The fitted budget follows the machine's speed (117 to 233 iterations seen on one 2-core machine, and
+    plain VBD's error after 6 steps falls from 0.22 at 100 iterations to 0.099 at 233), so the fit is
+    checked to give more than the panel's 20 iterations (a two-level step is 20 sweeps and a coarse
+    solve), and the errors are judged at a fixed budget inside that range."""
     import solver
     from demo.compose import FrameComposer
 
@@ -231,6 +239,8 @@ def test_remedy_scene_converges_where_plain_vbd_does_not():
     runner = SceneRunner(scene)
     plain, remedy = runner.panels
     assert plain.sim.method is solver.Method.VBD and remedy.sim.method is solver.Method.MULTILEVEL
+    assert plain.sim.iterations > scene.panels[0].iterations
+    plain.sim.iterations = REMEDY_PLAIN_ITERATIONS
     for _ in range(6):
         states = runner.advance()
     plain_state, remedy_state = states
