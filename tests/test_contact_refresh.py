@@ -2,8 +2,9 @@
 bounds from the pairs L of the last detection instead of detecting again. Judged in numpy at every
 iteration of two cubes driven into each other: the bounds follow the refresh's formula, the pairs of L
 closer than the radius are exactly those a fresh detection finds, the pairs the sweep skips are beyond
-the radius, and no bound lets two primitives meet. The sweep's cheaper skip, by how far the vertices
-moved since the refresh (`contact_sweep.may_be_within`), is checked against exact distances."""
+the radius (each vertex walks exactly its live pairs), and no bound lets two primitives meet. The sweep's
+cheaper skip, by how far the vertices moved since the refresh (`contact_sweep.may_be_within`), is checked
+against exact distances."""
 import numpy as np
 import pytest
 
@@ -71,7 +72,14 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             known = _active(kind, primitives, d, contact.radius)
             assert known == _active(fresh[0], fresh[2], fresh[3], contact.radius)
             # the pairs the sweep skips until the next refresh are beyond the radius
-            assert (d[stage.live.to_numpy()[:len(d)] == 0] >= contact.radius).all()
+            live = stage.live.to_numpy()[:len(d)]
+            assert (d[live == 0] >= contact.radius).all()
+            # and it walks, per vertex, the live pairs of its incidence list in their order
+            offsets, incidence = stage.detector.vertex_pairs()
+            live_incidence, live_end = stage.live_incidence.to_numpy(), stage.live_end.to_numpy()
+            for i in range(mesh.n_vertices):
+                listed = incidence[offsets[i]:offsets[i + 1]]
+                np.testing.assert_array_equal(live_incidence[offsets[i]:live_end[i]], listed[live[listed] == 1])
             active_seen = max(active_seen, len(known))
             # within their bounds no two primitives can meet: the pairs of L, and every pair between the
             # bodies up to 5 cm apart at x_det

@@ -46,7 +46,8 @@ class ContactStage:
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
     state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
     refresh, bound (N,) the bounds it set, in m, distance (P,) the pairs' distances there, in m, and live
-    (P,) int32 its pairs that may come within the radius before the next one (module docstring).
+    (P,) int32 its pairs that may come within the radius before the next one (module docstring), listed
+    per vertex in live_incidence (4P,) up to live_end (N,) (`contact_sweep.refresh_bounds`).
     `bound_hits` counts the vertices clamped to their bound since construction, `detections` the full
     detections, `refreshes` the refreshes.
     """
@@ -63,6 +64,8 @@ class ContactStage:
         self.bound = ti.ndarray(dtype, n)
         self.distance = ti.ndarray(dtype, 64)       # per pair, grown with the pair count
         self.live = ti.ndarray(ti.i32, 64)
+        self.live_incidence = ti.ndarray(ti.i32, 4 * 64)
+        self.live_end = ti.ndarray(ti.i32, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free.astype(np.int32))
         self._target = ti.Vector.ndarray(3, dtype, n)
@@ -84,6 +87,7 @@ class ContactStage:
         if n_pairs > self.live.shape[0]:
             self.distance = ti.ndarray(self.dtype, 2 * n_pairs)
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
+            self.live_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
         contact_sweep.copy_row(state, row, self.x_full)
         self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
         self._listed = False
@@ -105,8 +109,9 @@ class ContactStage:
         d, c = self.detector, self.contact
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
-                                             self.distance, self.x_det, self.bound, self.live, self._free,
-                                             self.dtype, self._serial)
+                                             self.distance, self.x_det, self.bound, self.live,
+                                             self.live_incidence, self.live_end, self._free, self.dtype,
+                                             self._serial)
         self._since_check = 0
         self._due = False
         return delta
@@ -145,9 +150,9 @@ class ContactStage:
             contact_sweep.list_jacobi_vertices(color_order, color_starts, d.incidence_offsets, self._jacobi,
                                                self._jacobi_count)
             self._listed = True
-        hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.live,
-                                                   self.distance, d.incidence_offsets, d.incidence, self.x_det,
-                                                   self.bound, self._target, self.touched, self._jacobi,
+        hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
+                                                   d.incidence_offsets, self.live_incidence, self.live_end,
+                                                   self.x_det, self.bound, self._target, self.touched, self._jacobi,
                                                    self._jacobi_count, c.stiffness, c.radius, c.friction,
                                                    c.friction_speed, n_colors, dtype, self._serial, d.n_pairs > 0)
         if omega is not None:
@@ -170,8 +175,8 @@ class ContactStage:
         there); returns max_i |f_i| in N."""
         self.detect(state, X)
         d, c = self.detector, self.contact
-        return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.live,
-                                                             self.distance, d.incidence_offsets, d.incidence,
+        return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
+                                                             d.incidence_offsets, self.live_incidence, self.live_end,
                                                              self.x_det, params, f, H, c.stiffness, c.radius,
                                                              c.friction, c.friction_speed, dtype))
 

@@ -15,10 +15,12 @@ bounds, g < 1/2, no two primitives can cross before the next refresh; `contact_s
 iteration, and with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
 Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,)
-int32 `PairKind`; pair (P,) 4-vectors of vertices; live (P,) int32, 0 for a pair that cannot come within
-the radius before the next refresh (skipped: `refresh_bounds`); distance (P,) m, each pair's distance at
-x_det (a live pair whose vertices have not moved far enough since is skipped too: `may_be_within`);
-incidence_offsets (N + 1,) and incidence (4P,) the pairs of each vertex; x_det (N,) 3-vectors; bound (N,)
+int32 `PairKind`; pair (P,) 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs
+of each vertex; live_incidence (4P,) and live_end (N,): the live pairs of vertex i (those that may come
+within the radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_offsets[i]:
+live_end[i]], in the order of incidence, and the sweep walks only those; distance (P,) m, each pair's
+distance at x_det (a live pair whose vertices have not moved far enough since is skipped too:
+`may_be_within`); x_det (N,) 3-vectors; bound (N,)
 m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair closer than
 the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs are
 jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
@@ -59,18 +61,16 @@ def pair_slip(state: ti.template(), v, w, dtype: ti.template()):
 
 
 @ti.func
-def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(), live: ti.template(),
-                             incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
-                             distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
+def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
+                             incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
+                             x_det: ti.template(), distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
     """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x;
     a pair that cannot be within r (`may_be_within`) is skipped before its distance is computed."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
-    for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
-        p = incidence[s]
-        if not live[p]:
-            continue
+    for s in range(incidence_offsets[i], live_end[i]):
+        p = live_incidence[s]
         v = pair[p]
         if not may_be_within(state, x_det, distance, kind[p], v, p, r, 0):
             continue
@@ -95,17 +95,17 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
 @ti.func
 def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order: ti.template(),
                          offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
-                         kind: ti.template(), pair: ti.template(), live: ti.template(), distance: ti.template(),
-                         incidence_offsets: ti.template(), incidence: ti.template(), x_det: ti.template(),
-                         bound: ti.template(), target: ti.template(), touched: ti.template(), k, kc, rr, mu_c,
-                         friction_speed, dtype: ti.template()):
+                         kind: ti.template(), pair: ti.template(), distance: ti.template(),
+                         incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
+                         x_det: ti.template(), bound: ti.template(), target: ti.template(), touched: ti.template(), k,
+                         kc, rr, mu_c, friction_speed, dtype: ti.template()):
     """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
     when i has pairs; returns whether it hit its bound."""
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-    f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence, x_det,
-                                                distance, kc, rr, mu_c, eps_u, dtype)
+    f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
+                                                x_det, distance, kc, rr, mu_c, eps_u, dtype)
     f += f_c
     H += H_c
     if active > 0:
@@ -139,10 +139,11 @@ def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti
 def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                           offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
-                          pair: ti.types.ndarray(), live: ti.types.ndarray(), distance: ti.types.ndarray(),
-                          incidence_offsets: ti.types.ndarray(), incidence: ti.types.ndarray(),
-                          x_det: ti.types.ndarray(), bound: ti.types.ndarray(), target: ti.types.ndarray(),
-                          touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
+                          pair: ti.types.ndarray(), distance: ti.types.ndarray(),
+                          incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
+                          live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), bound: ti.types.ndarray(),
+                          target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
+                          jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
                           dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
@@ -154,18 +155,18 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         ti.loop_config(serialize=True)
         for c in range(n_colors):
             for k in range(color_starts[c], color_starts[c + 1]):
-                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k,
-                                        kc, rr, mu_c, friction_speed, dtype):
+                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
+                                        incidence_offsets, live_incidence, live_end, x_det, bound, target, touched,
+                                        k, kc, rr, mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
-                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, live,
-                                        distance, incidence_offsets, incidence, x_det, bound, target, touched, k,
-                                        kc, rr, mu_c, friction_speed, dtype):
+                if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
+                                        incidence_offsets, live_incidence, live_end, x_det, bound, target, touched,
+                                        k, kc, rr, mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
@@ -193,7 +194,8 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
                    pair: ti.types.ndarray(), n_pairs: ti.i32, incidence_offsets: ti.types.ndarray(),
                    incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
                    x_det: ti.types.ndarray(), bound: ti.types.ndarray(), live: ti.types.ndarray(),
-                   free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.f64:
+                   live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(), free: ti.types.ndarray(),
+                   dtype: ti.template(), serial: ti.template()) -> ti.f64:
     """New bounds at x = state[row] from the first n_pairs pairs, found by the last full detection at
     x_full (N,) (`contact_state.py`); returns Delta in m. In order:
       Delta = max_i |x_i - x_full,i| over every vertex (fixed and kinematic ones included);
@@ -201,7 +203,9 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
       b_i = g min(q - 2 Delta, d_p of each pair p of i) and x_det,i = x_i, for every vertex;
       live[p] = 1 unless d_p >= r + (largest b of its first primitive) + (largest b of its second), b
       counted 0 at the vertices the sweep does not move (free (N,) int32 is 0 there): until the next
-      refresh such a pair stays beyond the radius, and the sweep skips it."""
+      refresh such a pair stays beyond the radius, and the sweep skips it;
+      live_incidence[incidence_offsets[i]:live_end[i]] = the live pairs of incidence[incidence_offsets[i]:
+      incidence_offsets[i + 1]], in order, for every vertex (the sweep walks only those)."""
     delta = ti.cast(0.0, ti.f64)
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
@@ -227,6 +231,14 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
         if kind[p] == int(PairKind.EDGE_EDGE):
             reach = ti.max(b[0], b[1]) + ti.max(b[2], b[3])         # edge | edge
         live[p] = ti.cast(distance[p] < r + reach, ti.i32)
+    ti.loop_config(serialize=serial)
+    for i in range(x_full.shape[0]):
+        end = incidence_offsets[i]
+        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
+            if live[incidence[s]]:
+                live_incidence[end] = incidence[s]
+                end += 1
+        live_end[i] = end
     return delta
 
 
@@ -306,20 +318,20 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
 
 @ti.kernel
 def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
-                              pair: ti.types.ndarray(), live: ti.types.ndarray(), distance: ti.types.ndarray(),
-                              incidence_offsets: ti.types.ndarray(), incidence: ti.types.ndarray(),
-                              x_det: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
-                              H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
-                              friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
+                              pair: ti.types.ndarray(), distance: ti.types.ndarray(),
+                              incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
+                              live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), params: ti.types.ndarray(),
+                              f_out: ti.types.ndarray(), H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64,
+                              mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
-    `vertex_solve.local_systems` filled them), the bounds, live flags and distances set at the current x
+    `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
     (x_det = x); return max_i |f_i| in N."""
     result = ti.cast(0.0, ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, live, incidence_offsets, incidence, x_det,
-                                                    distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
+                                                    x_det, distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
                                                     ti.cast(mu, dtype), eps_u, dtype)
         f_out[i] += f_c
         H_out[i] += H_c
