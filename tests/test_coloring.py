@@ -45,6 +45,26 @@ def test_coloring_is_cached_per_connectivity(monkeypatch, tmp_path):
     assert solver.box_mesh(cells=(7, 3, 3)).topology_key() != key
 
 
+def test_a_damaged_cache_file_is_coloured_again_and_replaced(monkeypatch, tmp_path):
+    """A cache file cut short (a process stopped while writing an older version, a full disk) is not an
+    error: the mesh is coloured again and the file rewritten whole; no .part file is left behind."""
+    from solver.mesh import coloring
+
+    monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
+    mesh = solver.box_mesh(cells=(4, 3, 2))
+    key = mesh.topology_key()
+    first = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)
+    (written,) = tmp_path.glob("colors-*.npy")
+    for damaged in (written.read_bytes()[:100], b"", b"not a numpy file"):
+        written.write_bytes(damaged)
+        monkeypatch.setattr(coloring, "_memory_cache", {})
+        again = solver.color_vertices(mesh.tets, mesh.n_vertices, key=key)
+        assert not again.cached
+        np.testing.assert_array_equal(again.colors, first.colors)
+        np.testing.assert_array_equal(np.load(written), first.colors)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [written.name]
+
+
 def test_simulation_leaves_fixed_vertices_out_of_the_color_sets():
     mesh = solver.box_mesh(cells=(6, 2, 2))
     fixed = mesh.vertices[:, 0] < 1e-9

@@ -1,12 +1,13 @@
 """Which tests should carry `@pytest.mark.slow`, from the durations of a full run.
 
 A test is slow when its set-up, call and tear-down together take more than --threshold seconds (5 s,
-the line the README draws). Measure on an idle machine, the whole suite in one run, then:
+the line the README draws). Measure on an idle machine, the whole suite in one run in one process (`-n 0`:
+one test at a time, as the durations mean), then:
 
-    .venv/bin/python -m pytest -q --junitxml=run.xml                 # preferred: it records skips
+    .venv/bin/python -m pytest -q -n 0 --junitxml=run.xml                 # preferred: it records skips
     .venv/bin/python tools/mark_slow.py run.xml
 or
-    .venv/bin/python -m pytest -q --durations=0 --durations-min=0 | tee durations.txt
+    .venv/bin/python -m pytest -q -n 0 --durations=0 --durations-min=0 | tee durations.txt
     .venv/bin/python tools/mark_slow.py durations.txt
 
 It prints the tests to mark slow, the tests to unmark, and the test time of the fast subset

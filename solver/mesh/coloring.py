@@ -10,6 +10,7 @@ an earlier version of a homework `_greedy`) is never read.
 import hashlib
 import inspect
 import os
+import tempfile
 import time
 from dataclasses import dataclass
 from enum import Enum
@@ -102,10 +103,9 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
     if cache_key in _memory_cache:
         return _memory_cache[cache_key]
     path = _cache_file(cache_key) if cache_key else None
-    if path and os.path.exists(path):
-        colors = np.load(path)
-        if colors.shape == (n_vertices,) and is_valid_coloring(tets, colors):
-            return _remember(cache_key, colors, 0.0, True)
+    colors = _read_cache(path) if path else None
+    if colors is not None and colors.shape == (n_vertices,) and is_valid_coloring(tets, colors):
+        return _remember(cache_key, colors, 0.0, True)
     ensure_taichi()
     start = time.perf_counter()
     offsets, neighbours = vertex_neighbours(tets, n_vertices)
@@ -120,12 +120,28 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
                         "neighbours); remesh with better-shaped tets")
     seconds = time.perf_counter() - start
     if path:
-        try:
-            os.makedirs(os.path.dirname(path), exist_ok=True)
-            np.save(path, colors)
-        except OSError:
-            pass  # the disk cache is an optimisation only
+        _write_cache(path, colors)
     return _remember(cache_key, colors, seconds, False)
+
+
+def _read_cache(path: str):
+    """The colours cached at path, or None when there are none or the file cannot be read."""
+    try:
+        return np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError):
+        return None
+
+
+def _write_cache(path: str, colors: np.ndarray) -> None:
+    """Cache colours at path: written to a file of its own first and then renamed, so that processes
+    colouring the same mesh at once (parallel test workers, renders) never read a half-written file."""
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=os.path.dirname(path), suffix=".part", delete=False) as file:
+            np.save(file, colors)
+        os.replace(file.name, path)
+    except OSError:
+        pass  # the disk cache is an optimisation only
 
 
 def _remember(cache_key, colors, seconds, cached) -> Coloring:
