@@ -1,11 +1,12 @@
 """The per-body translation correction (`solver/vbd/translation.py`, issue 17): two free bodies beside a fixed
 one each get their own translation, which zeroes the sum of their residuals (with and without contact),
 never moves the fixed body, equals the whole-mesh correction for a single free body, does not increase G,
-and with contact keeps every vertex within its bound."""
+and with contact keeps every vertex within its bound (so the pairs it skips stay beyond the radius)."""
 import numpy as np
 import pytest
 
 import solver
+from solver.physics.contact import pair_geometry_np
 from solver.vbd.translation import BodyTranslation
 
 pytestmark = pytest.mark.backend
@@ -108,6 +109,9 @@ def test_the_correction_never_increases_G_and_keeps_every_vertex_within_its_boun
         sim.end_step()
         moved = np.linalg.norm(sim.positions - stage.x_det.to_numpy(), axis=1)
         assert (moved <= stage.bound.to_numpy() * (1 + 1e-9) + 1e-15).all()
+        kind, vertices, _, _ = stage.detector.pairs()       # the pairs the correction skips stay beyond r
+        skipped = stage.live.to_numpy()[:len(kind)] == 0
+        assert (pair_geometry_np(kind[skipped], sim.positions[vertices[skipped]])[0] >= 0.005).all()
         G_after = sim.energy()
         assert G_after <= G_before + 1e-12 * abs(G_before)
         seen["decreased"] += G_after < G_before - 1e-9 * abs(G_before)

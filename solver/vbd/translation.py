@@ -95,18 +95,20 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
 
 @ti.kernel
 def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.types.ndarray(), n_pairs: ti.i32,
-              x_det: ti.types.ndarray(), distance: ti.types.ndarray(), body: ti.types.ndarray(),
-              corrected: ti.types.ndarray(), F: ti.types.ndarray(), K: ti.types.ndarray(),
+              x_det: ti.types.ndarray(), distance: ti.types.ndarray(), live: ti.types.ndarray(),
+              body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(), K: ti.types.ndarray(),
               touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
               friction_speed: ti.f64, dtype: ti.template()):
     """Add to F_b and K_b of each corrected body its pairs with other bodies closer than r, the body acting
     on the pair as one vertex of weight s_b = sum of the pair's weights on its side (module docstring);
     pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them, distance (P,) in m
-    at the positions x_det (N,) of the last refresh (pairs that cannot be within r are skipped:
-    `contact_sweep.may_be_within`)."""
+    at the positions x_det (N,) of the last refresh and live (P,) int32 its flags (pairs that cannot be
+    within r are skipped: not live, or `contact_sweep.may_be_within`)."""
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     for p in range(n_pairs):
+        if not live[p]:
+            continue
         v = pair[p]
         ends = ti.Vector([body[v[0]], body[v[3]]])
         if ends[0] == ends[1] or not may_be_within(state, x_det, distance, kind[p], v, p, rr, 0):
@@ -173,12 +175,13 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
                    params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
                    d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
                    pair: ti.types.ndarray(), n_pairs: ti.i32, x_det: ti.types.ndarray(), distance: ti.types.ndarray(),
-                   k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
+                   live: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
     """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
     corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
     elastic energy and the pairs within a body do not change under a translation of the body). A pair that
-    cannot come within r under the largest of the translations is skipped (`contact_sweep.may_be_within`;
-    x_det, distance as for `pair_sums`)."""
+    cannot come within r under the largest of the translations is skipped: not live (the translations keep
+    every vertex within its bound, `limit_to_bounds`), or by `contact_sweep.may_be_within` (x_det,
+    distance, live as for `pair_sums`)."""
     for s in ti.static(range(TRIALS)):
         change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
@@ -197,6 +200,8 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
                 change[s] += delta
                 scale *= 0.5
     for p in range(n_pairs):
+        if not live[p]:
+            continue
         v = pair[p]
         a, b = body[v[0]], body[v[3]]
         largest = (body_shift(v[0], body, corrected, d, alpha, 1.0).norm()          # the scale-1 translations
@@ -288,17 +293,17 @@ class BodyTranslation:
                   self.touching, dtype)
         if contact_stage is not None:
             det, c = contact_stage.detector, contact_stage.contact
-            pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance, body,
-                      corrected, self.F, self.K, self.touching, params, c.stiffness, c.radius, c.friction,
-                      c.friction_speed, dtype)
+            pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance,
+                      contact_stage.live, body, corrected, self.F, self.K, self.touching, params, c.stiffness,
+                      c.radius, c.friction, c.friction_speed, dtype)
         body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha)
         self.scale = 1.0
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
                             contact_stage.bound)
             energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
-                           det.n_pairs, contact_stage.x_det, contact_stage.distance, c.stiffness, c.radius,
-                           self._changes)
+                           det.n_pairs, contact_stage.x_det, contact_stage.distance, contact_stage.live,
+                           c.stiffness, c.radius, self._changes)
             descending = np.flatnonzero(self._changes.to_numpy() <= 0)
             self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
         translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
