@@ -65,6 +65,24 @@ def test_a_damaged_cache_file_is_coloured_again_and_replaced(monkeypatch, tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == [written.name]
 
 
+def test_a_cache_that_cannot_be_written_leaves_nothing_behind(monkeypatch, tmp_path):
+    """Writing the cache fails part way (a full disk): the colouring is still returned, and neither a cache
+    file nor a half-written .part file is left in the folder."""
+    from solver.mesh import coloring
+
+    def full_disk(file, colors):
+        file.write(b"\x93NUMPY")
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setenv("VBD_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(coloring, "_memory_cache", {})
+    monkeypatch.setattr(coloring.np, "save", full_disk)
+    mesh = solver.box_mesh(cells=(3, 3, 2))
+    result = solver.color_vertices(mesh.tets, mesh.n_vertices, key=mesh.topology_key())
+    assert solver.is_valid_coloring(mesh.tets, result.colors) and not result.cached
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_simulation_leaves_fixed_vertices_out_of_the_color_sets():
     mesh = solver.box_mesh(cells=(6, 2, 2))
     fixed = mesh.vertices[:, 0] < 1e-9

@@ -134,14 +134,18 @@ def _read_cache(path: str):
 
 def _write_cache(path: str, colors: np.ndarray) -> None:
     """Cache colours at path: written to a file of its own first and then renamed, so that processes
-    colouring the same mesh at once (parallel test workers, renders) never read a half-written file."""
+    colouring the same mesh at once (parallel test workers, renders) never read a half-written file. The
+    disk cache is an optimisation only: when writing fails (a full disk), nothing is left behind."""
+    part = None
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=os.path.dirname(path), suffix=".part", delete=False) as file:
+            part = file.name
             np.save(file, colors)
-        os.replace(file.name, path)
+        os.replace(part, path)
     except OSError:
-        pass  # the disk cache is an optimisation only
+        if part is not None and os.path.exists(part):
+            os.unlink(part)
 
 
 def _remember(cache_key, colors, seconds, cached) -> Coloring:
