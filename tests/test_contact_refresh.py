@@ -80,6 +80,11 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             for i in range(mesh.n_vertices):
                 listed = incidence[offsets[i]:offsets[i + 1]]
                 np.testing.assert_array_equal(live_incidence[offsets[i]:live_end[i]], listed[live[listed] == 1])
+            # the moves since x_det it reads for those pairs' vertices are the moves to x (`measure_moves`,
+            # then `apply_buffered` after each colour)
+            paired = np.diff(offsets) > 0
+            np.testing.assert_allclose(stage._moved.to_numpy()[paired], np.linalg.norm(x - x_det, axis=1)[paired],
+                                       rtol=1e-12, atol=1e-18)
             active_seen = max(active_seen, len(known))
             # within their bounds no two primitives can meet: the pairs of L, and every pair between the
             # bodies up to 5 cm apart at x_det

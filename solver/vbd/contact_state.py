@@ -35,7 +35,7 @@ from ..physics.contact import Contact
 from ..physics.contact_detection import ContactDetector
 from . import contact_sweep
 from .layout import X, X_N
-from .vertex_solve import serial_sweep
+from .vertex_solve import serial_sweep, unrolled_colors
 
 COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
 
@@ -62,6 +62,7 @@ class ContactStage:
         self.x_full = ti.Vector.ndarray(3, dtype, n)
         self.x_det = ti.Vector.ndarray(3, dtype, n)
         self.bound = ti.ndarray(dtype, n)
+        self._moved = ti.ndarray(dtype, n)
         self.distance = ti.ndarray(dtype, 64)       # per pair, grown with the pair count
         self.live = ti.ndarray(ti.i32, 64)
         self.live_incidence = ti.ndarray(ti.i32, 4 * 64)
@@ -152,9 +153,10 @@ class ContactStage:
             self._listed = True
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
                                                    d.incidence_offsets, self.live_incidence, self.live_end,
-                                                   self.x_det, self.bound, self._target, self.touched, self._jacobi,
-                                                   self._jacobi_count, c.stiffness, c.radius, c.friction,
-                                                   c.friction_speed, n_colors, dtype, self._serial, d.n_pairs > 0)
+                                                   self.x_det, self._moved, self.bound, self._target, self.touched,
+                                                   self._jacobi, self._jacobi_count, c.stiffness, c.radius, c.friction,
+                                                   c.friction_speed, unrolled_colors(n_colors, self._serial), dtype,
+                                                   self._serial, d.n_pairs > 0)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)
@@ -177,8 +179,8 @@ class ContactStage:
         d, c = self.detector, self.contact
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
                                                              d.incidence_offsets, self.live_incidence, self.live_end,
-                                                             self.x_det, params, f, H, c.stiffness, c.radius,
-                                                             c.friction, c.friction_speed, dtype))
+                                                             self.x_det, self._moved, params, f, H, c.stiffness,
+                                                             c.radius, c.friction, c.friction_speed, dtype))
 
     def distances(self, state) -> np.ndarray:
         """(P,) distances in m of the pairs under query_radius at the current positions."""

@@ -20,10 +20,10 @@ of each vertex; live_incidence (4P,) and live_end (N,): the live pairs of vertex
 within the radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_offsets[i]:
 live_end[i]], in the order of incidence, and the sweep walks only those; distance (P,) m, each pair's
 distance at x_det (a live pair whose vertices have not moved far enough since is skipped too:
-`may_be_within`); x_det (N,) 3-vectors; bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32,
-set to 1 at every vertex with a pair closer than the radius; jacobi (S,) and jacobi_count (colours,): the
-vertices of colour c that have pairs are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]]
-(`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+`may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since x_det (`measure_moves`);
+bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair
+closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs
+are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
@@ -38,15 +38,30 @@ from .vertex_solve import force_hessian, newton_step, step_limit
 
 
 @ti.func
+def pair_reach(kind, s):
+    """How much closer a pair can be than at x_det, given the moves s (4,) of its vertices since then (m):
+    the largest move of a vertex on each side (the closest points are convex combinations of their vertices)."""
+    reach = s[0] + ti.max(s[1], s[2], s[3])                     # vertex | triangle
+    if kind == int(PairKind.EDGE_EDGE):
+        reach = ti.max(s[0], s[1]) + ti.max(s[2], s[3])         # edge | edge
+    return reach
+
+
+@ti.func
 def may_be_within(state: ti.template(), x_det: ti.template(), distance: ti.template(), kind, v, p, r, slack):
     """Whether pair p (vertices v) may be closer than r + slack at the current x: it was distance[p] apart at
-    x_det, and the distance between two primitives shrinks by at most the largest move of a vertex of each
-    (the closest points are convex combinations of their vertices). Costs eight reads, not a distance."""
-    m = ti.Vector([(state[X, v[j]] - x_det[v[j]]).norm_sqr() for j in ti.static(range(4))])
-    reach = ti.sqrt(m[0]) + ti.sqrt(ti.max(m[1], m[2], m[3]))                 # vertex | triangle
-    if kind == int(PairKind.EDGE_EDGE):
-        reach = ti.sqrt(ti.max(m[0], m[1])) + ti.sqrt(ti.max(m[2], m[3]))     # edge | edge
-    return distance[p] - reach < r + slack
+    x_det, and has come at most `pair_reach` closer since. Costs eight reads, not a distance."""
+    s = ti.Vector([(state[X, v[j]] - x_det[v[j]]).norm() for j in ti.static(range(4))])
+    return distance[p] - pair_reach(kind, s) < r + slack
+
+
+@ti.func
+def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), serial: ti.template()):
+    """moved[i] = |x_i - x_det,i| in m for every vertex: what `may_be_within` would compute from eight reads,
+    read by the sweep as four numbers per pair (kept up to date by `apply_buffered`)."""
+    ti.loop_config(serialize=serial)
+    for i in range(moved.shape[0]):
+        moved[i] = (state[X, i] - x_det[i]).norm()
 
 
 @ti.func
@@ -62,16 +77,17 @@ def pair_slip(state: ti.template(), v, w, dtype: ti.template()):
 @ti.func
 def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
                              incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                             x_det: ti.template(), distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
+                             moved: ti.template(), distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
     """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x;
-    a pair that cannot be within r (`may_be_within`) is skipped before its distance is computed."""
+    a pair that cannot be within r (`may_be_within`, from the moves `moved` (N,) since x_det) is skipped
+    before its distance is computed."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
     for s in range(incidence_offsets[i], live_end[i]):
         p = live_incidence[s]
         v = pair[p]
-        if not may_be_within(state, x_det, distance, kind[p], v, p, r, 0):
+        if distance[p] - pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))])) >= r:
             continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < r:
@@ -96,15 +112,15 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
                          offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
                          kind: ti.template(), pair: ti.template(), distance: ti.template(),
                          incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                         x_det: ti.template(), bound: ti.template(), target: ti.template(), touched: ti.template(), k,
-                         kc, rr, mu_c, friction_speed, dtype: ti.template()):
+                         x_det: ti.template(), moved: ti.template(), bound: ti.template(), target: ti.template(),
+                         touched: ti.template(), k, kc, rr, mu_c, friction_speed, dtype: ti.template()):
     """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
-    when i has pairs; returns whether it hit its bound."""
+    when i has pairs; returns whether it hit its bound. moved (N,): `measure_moves`."""
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                x_det, distance, kc, rr, mu_c, eps_u, dtype)
+                                                moved, distance, kc, rr, mu_c, eps_u, dtype)
     f += f_c
     H += H_c
     if active > 0:
@@ -113,11 +129,11 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
     if params[KEEP_ORIENTATION] > 0:
         dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
     x_new = state[X, i] + dx
-    moved = x_new - x_det[i]
-    length = moved.norm()
+    offset = x_new - x_det[i]
+    length = offset.norm()
     hit = False
     if length > bound[i]:
-        x_new = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
+        x_new = x_det[i] + offset * ti.cast(bound[i] / length, dtype)
         hit = True
     if incidence_offsets[i + 1] > incidence_offsets[i]:
         target[i] = x_new           # a partner in this colour may still read x_i
@@ -128,10 +144,13 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
 
 @ti.func
 def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
-                   jacobi_count: ti.template(), target: ti.template(), c):
-    """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour)."""
+                   jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(), c):
+    """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), and their
+    moved[i] = |x_i - x_det,i| (only vertices with pairs are read there)."""
     for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
-        state[X, jacobi[j]] = target[jacobi[j]]
+        i = jacobi[j]
+        state[X, i] = target[i]
+        moved[i] = (target[i] - x_det[i]).norm()
 
 
 @ti.kernel
@@ -140,35 +159,37 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
                           pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                           incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
-                          live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), bound: ti.types.ndarray(),
-                          target: ti.types.ndarray(), touched: ti.types.ndarray(), jacobi: ti.types.ndarray(),
-                          jacobi_count: ti.types.ndarray(),
+                          live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
+                          bound: ti.types.ndarray(), target: ti.types.ndarray(), touched: ti.types.ndarray(),
+                          jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
                           dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
     serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
-    else each colour is a parallel loop, followed by its writes."""
+    else each colour is a parallel loop, followed by its writes. n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
+    if ti.static(buffered):
+        measure_moves(state, x_det, moved, serial)
     if ti.static(serial):
         ti.loop_config(serialize=True)
-        for c in range(n_colors):
+        for c in range(color_starts.shape[0] - 1):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, bound, target, touched,
-                                        k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, target,
+                                        touched, k, kc, rr, mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, bound, target, touched,
-                                        k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, target,
+                                        touched, k, kc, rr, mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, c)
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
     return hits
 
 
@@ -319,18 +340,19 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
 def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
                               pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                               incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
-                              live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), params: ti.types.ndarray(),
-                              f_out: ti.types.ndarray(), H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64,
-                              mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
+                              live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
+                              params: ti.types.ndarray(), f_out: ti.types.ndarray(), H_out: ti.types.ndarray(),
+                              k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
-    (x_det = x); return max_i |f_i| in N."""
+    (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`."""
     result = ti.cast(0.0, ti.f64)
+    measure_moves(state, x_det, moved, False)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
         f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                    x_det, distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
+                                                    moved, distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
                                                     ti.cast(mu, dtype), eps_u, dtype)
         f_out[i] += f_c
         H_out[i] += H_c

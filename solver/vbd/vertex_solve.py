@@ -40,6 +40,13 @@ def serial_sweep(n_tets: int, on_cpu: bool) -> bool:
     return on_cpu and n_tets < SERIAL_SWEEP_TETS
 
 
+def unrolled_colors(n_colors: int, serial: bool) -> int:
+    """The `n_colors` argument of the sweep kernels, a compile-time constant: the colour count when each
+    colour is its own parallel loop, 0 for the serial sweep, which reads the count from color_starts when it
+    runs, so that one compiled kernel serves every mesh (a new constant means a new compile, about 0.5 s)."""
+    return 0 if serial else n_colors
+
+
 @ti.func
 def tet_kinematics(state: ti.template(), x_i, j, a):
     """F m_i, J = det F and w = dJ/dx_i of one tet around vertex i at x_i: j (3,) its other vertices
@@ -147,14 +154,14 @@ def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_ord
                   dtype: ti.template(), serial: ti.template()):
     """One VBD iteration: each colour in turn, all vertices of a colour in parallel.
 
-    color_starts (n_colors + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
+    color_starts (colours + 1,) int32: colour c owns the slots color_starts[c] <= k < color_starts[c + 1].
     serial: one CPU thread visits every slot in order (`serial_sweep`), i.e. colour 0, then colour 1, ...;
     the vertices of a colour are independent, so the result is the same, without a barrier per colour
-    (and one loop to compile instead of one per colour).
+    (and one loop to compile instead of one per colour). n_colors: `unrolled_colors`.
     """
     if ti.static(serial):
         ti.loop_config(serialize=True)
-        for k in range(color_starts[0], color_starts[n_colors]):
+        for k in range(color_starts[0], color_starts[color_starts.shape[0] - 1]):
             solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     else:
         for c in ti.static(range(n_colors)):
