@@ -39,8 +39,9 @@ from .vertex_solve import force_hessian, newton_step, step_limit
 
 @ti.func
 def pair_reach(kind, s):
-    """How much closer a pair can be than at x_det, given the moves s (4,) of its vertices since then (m):
-    the largest move of a vertex on each side (the closest points are convex combinations of their vertices)."""
+    """How much closer a pair can come when its four vertices move by at most s (4,) m (since x_det, or until
+    the next refresh: their bounds): the largest move on each side, as the closest points are convex
+    combinations of their vertices."""
     reach = s[0] + ti.max(s[1], s[2], s[3])                     # vertex | triangle
     if kind == int(PairKind.EDGE_EDGE):
         reach = ti.max(s[0], s[1]) + ti.max(s[2], s[3])         # edge | edge
@@ -247,10 +248,7 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
     for p in range(n_pairs):
         v = pair[p]
         b = ti.Vector([bound[v[j]] * free[v[j]] for j in ti.static(range(4))])
-        reach = b[0] + ti.max(b[1], b[2], b[3])                     # vertex | triangle
-        if kind[p] == int(PairKind.EDGE_EDGE):
-            reach = ti.max(b[0], b[1]) + ti.max(b[2], b[3])         # edge | edge
-        live[p] = ti.cast(distance[p] < r + reach, ti.i32)
+        live[p] = ti.cast(distance[p] < r + pair_reach(kind[p], b), ti.i32)
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         end = incidence_offsets[i]
