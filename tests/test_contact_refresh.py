@@ -12,7 +12,7 @@ import solver
 from solver._ti import ti
 from solver.physics.contact import PairKind, pair_geometry_np
 from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
-from solver.vbd.contact_sweep import may_be_within
+from solver.vbd.contact_sweep import may_be_within, moves_since
 from solver.vbd.layout import STATE_ROWS, X
 
 pytestmark = pytest.mark.backend
@@ -128,7 +128,7 @@ def _may_be_within(state: ti.types.ndarray(), x_det: ti.types.ndarray(), distanc
                    kind: ti.types.ndarray(), pair: ti.types.ndarray(), r: ti.f64, slack: ti.f64,
                    out: ti.types.ndarray()):
     for p in range(out.shape[0]):
-        out[p] = ti.cast(may_be_within(state, x_det, distance, kind[p], pair[p], p, r, slack), ti.i32)
+        out[p] = ti.cast(may_be_within(distance, kind[p], p, moves_since(state, x_det, pair[p]), r, slack), ti.i32)
 
 
 def test_a_pair_skipped_for_its_vertices_moves_is_beyond_the_radius():

@@ -4,7 +4,7 @@ A test is slow when its set-up, call and tear-down together take more than --thr
 the line the README draws). Measure on an idle machine, the whole suite in one run in one process (`-n 0`:
 one test at a time, as the durations mean), then:
 
-    .venv/bin/python -m pytest -q -n 0 --junitxml=run.xml                 # preferred: it records skips
+    .venv/bin/python -m pytest -q -n 0 --junitxml=run.xml            # preferred: it records skips
     .venv/bin/python tools/mark_slow.py run.xml
 or
     .venv/bin/python -m pytest -q -n 0 --durations=0 --durations-min=0 | tee durations.txt

@@ -23,7 +23,8 @@ distance at x_det (a live pair whose vertices have not moved far enough since is
 `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since x_det (`measure_moves`);
 bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair
 closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs
-are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu, friction_speed m/s: the `Contact`.
+are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
+friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
@@ -49,17 +50,23 @@ def pair_reach(kind, s):
 
 
 @ti.func
-def may_be_within(state: ti.template(), x_det: ti.template(), distance: ti.template(), kind, v, p, r, slack):
-    """Whether pair p (vertices v) may be closer than r + slack at the current x: it was distance[p] apart at
-    x_det, and has come at most `pair_reach` closer since. Costs eight reads, not a distance."""
-    s = ti.Vector([(state[X, v[j]] - x_det[v[j]]).norm() for j in ti.static(range(4))])
+def may_be_within(distance: ti.template(), kind, p, s, r, slack):
+    """Whether pair p may be closer than r + slack at the current x: it was distance[p] apart at x_det, and
+    its vertices have moved s (4,) m since, so it has come at most `pair_reach` closer. No distance needed."""
     return distance[p] - pair_reach(kind, s) < r + slack
 
 
 @ti.func
+def moves_since(state: ti.template(), x_det: ti.template(), v):
+    """|x_j - x_det,j| (4,) in m of the vertices v of a pair, from eight reads (the sweep keeps them per
+    vertex instead: `measure_moves`)."""
+    return ti.Vector([(state[X, v[j]] - x_det[v[j]]).norm() for j in ti.static(range(4))])
+
+
+@ti.func
 def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), serial: ti.template()):
-    """moved[i] = |x_i - x_det,i| in m for every vertex: what `may_be_within` would compute from eight reads,
-    read by the sweep as four numbers per pair (kept up to date by `apply_buffered`)."""
+    """moved[i] = |x_i - x_det,i| in m for every vertex, so that the sweep reads a pair's `moves_since` as four
+    numbers (kept up to date by `apply_buffered`)."""
     ti.loop_config(serialize=serial)
     for i in range(moved.shape[0]):
         moved[i] = (state[X, i] - x_det[i]).norm()
@@ -88,7 +95,7 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
     for s in range(incidence_offsets[i], live_end[i]):
         p = live_incidence[s]
         v = pair[p]
-        if distance[p] - pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))])) >= r:
+        if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), r, 0):
             continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < r:
@@ -340,7 +347,8 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
                               incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
                               live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
                               params: ti.types.ndarray(), f_out: ti.types.ndarray(), H_out: ti.types.ndarray(),
-                              k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
+                              k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64,
+                              dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
     (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`."""

@@ -228,9 +228,9 @@ class Simulation(SimulationState):
                 self._contact_stage.iterate(self.state, self._mass, self._adjacency, self._params, self.n_colors,
                                             self.dtype, None if s.chebyshev_rho is None else self._omega)
             else:
+                n_colors = vertex_solve.unrolled_colors(self.n_colors, self._serial_sweep)
                 vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
-                                           self._params, vertex_solve.unrolled_colors(self.n_colors, self._serial_sweep),
-                                           self.dtype, self._serial_sweep)
+                                           self._params, n_colors, self.dtype, self._serial_sweep)
                 if s.chebyshev_rho is not None:
                     chebyshev_step(self.state, color_order, self._omega, self.dtype)
             ran += 1

@@ -60,7 +60,7 @@ from ..physics.contact import barrier, barrier_derivatives, contact_force_hessia
 from ..physics.ground import ground_energy, ground_hessian_zz
 from ..physics.inertia import inertia_block, inertia_energy
 from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, TIME_STEP, X, Y
-from .contact_sweep import may_be_within, pair_slip
+from .contact_sweep import may_be_within, moves_since, pair_slip
 from .vertex_solve import force_hessian
 
 TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (`energy_changes`)
@@ -111,7 +111,7 @@ def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.type
             continue
         v = pair[p]
         ends = ti.Vector([body[v[0]], body[v[3]]])
-        if ends[0] == ends[1] or not may_be_within(state, x_det, distance, kind[p], v, p, rr, 0):
+        if ends[0] == ends[1] or not may_be_within(distance, kind[p], p, moves_since(state, x_det, v), rr, 0):
             continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
         if d < rr:
@@ -204,21 +204,23 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
             continue
         v = pair[p]
         a, b = body[v[0]], body[v[3]]
+        if a == b or not (corrected[a] or corrected[b]):
+            continue
         largest = (body_shift(v[0], body, corrected, d, alpha, 1.0).norm()          # the scale-1 translations
                    + body_shift(v[3], body, corrected, d, alpha, 1.0).norm())
-        if a != b and (corrected[a] or corrected[b]) and may_be_within(state, x_det, distance, kind[p], v, p, r,
-                                                                       largest):
-            x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
-            x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
-            before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
-            scale = ti.cast(1.0, ti.f64)
-            for s in range(TRIALS):
-                after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
-                                      x1 + body_shift(v[1], body, corrected, d, alpha, scale),
-                                      x2 + body_shift(v[2], body, corrected, d, alpha, scale),
-                                      x3 + body_shift(v[3], body, corrected, d, alpha, scale))
-                change[s] += barrier(after, k_c, r) - before
-                scale *= 0.5
+        if not may_be_within(distance, kind[p], p, moves_since(state, x_det, v), r, largest):
+            continue
+        x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
+        x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
+        before = barrier(pair_distance(kind[p], x0, x1, x2, x3), k_c, r)
+        scale = ti.cast(1.0, ti.f64)
+        for s in range(TRIALS):
+            after = pair_distance(kind[p], x0 + body_shift(v[0], body, corrected, d, alpha, scale),
+                                  x1 + body_shift(v[1], body, corrected, d, alpha, scale),
+                                  x2 + body_shift(v[2], body, corrected, d, alpha, scale),
+                                  x3 + body_shift(v[3], body, corrected, d, alpha, scale))
+            change[s] += barrier(after, k_c, r) - before
+            scale *= 0.5
 
 
 @ti.kernel
