@@ -9,8 +9,9 @@ Four measurements, all float64 on the CPU, ratios taken within one run (issue 17
     with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
     ratios of the steps taken in turn);
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
-    contact) on the same settled pile and on the large mesh below, the fastest of 3 interleaved timings
-    of each (target: at most 1x);
+    contact) on the same settled pile and on the large meshes below, the fastest of 3 interleaved timings
+    of each (target: at most 1x). Set apart, the bodies are left out of the search (far from the others,
+    moved rigidly); touching (1.5 mm gaps, inside the radius) they are all searched;
   * ns per tet per VBD iteration of 8 bodies of 3,072 tets (24,576 tets) set apart, no gravity, with
     contact on (nothing within query_radius) and with contact=None, the fastest of 3 interleaved timings
     of each (target: at most 1.25x).
@@ -141,6 +142,22 @@ def measure_apart(solver, cells, min_seconds):
                 contact_per_none=ns["contact"] / ns["none"])
 
 
+def measure_touching(solver, cells, min_seconds):
+    """The 8 bodies of `measure_apart` in a 2 x 2 x 2 block with 1.5 mm gaps (under the radius): one
+    detection, where every body is searched, against one sweep."""
+    side, gap = 0.1, 0.0015
+    bodies = [solver.box_mesh(size=(side,) * 3, cells=(cells,) * 3,
+                              origin=((side + gap) * i, (side + gap) * j, (side + gap) * m))
+              for i in range(2) for j in range(2) for m in range(2)]
+    mesh = solver.merge_meshes(bodies)
+    sim = solver.Simulation(mesh, solver.Material(**SOFT), dt=1 / 60, gravity=(0, 0, 0), iterations=1,
+                            contact=solver.Contact(stiffness=1e4, radius=0.002))
+    detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, None, min_seconds)
+    return dict(measurement="touching, no gravity", bodies=len(bodies), tets=mesh.n_tets,
+                contacts=sim.contact_count(), detect_ms=detect_s * 1e3, sweep_ms=sweep_s * 1e3,
+                detect_per_sweep=detect_s / sweep_s)
+
+
 def plot(rows, path):
     import matplotlib
     matplotlib.use("Agg")
@@ -187,6 +204,7 @@ def main(argv=None):
     for k in progress(piles, desc="piles", disable=args.no_progress):
         rows.append(measure_pile(solver, k, settle, steps, min_seconds))
     rows.append(measure_apart(solver, cells, min_seconds))
+    rows.append(measure_touching(solver, cells, min_seconds))
     text = table(rows, COLUMNS, title="Contact cost (float64, CPU; ratios within this run)")
     print(text)
     write_csv(f"{out}/contact.csv", rows, COLUMNS)

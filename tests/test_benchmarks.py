@@ -98,8 +98,10 @@ def test_contact_quick(tmp_path):
     assert [int(r["bodies"]) for r in piles] == [1, 8]
     assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
     assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
-    (apart,) = [r for r in data if r["measurement"] != "pile"]
+    (apart,) = [r for r in data if r["measurement"].startswith("apart")]
     assert int(apart["contacts"]) == 0, "bodies set apart have no pair closer than the radius"
+    (touching,) = [r for r in data if r["measurement"].startswith("touching")]
+    assert int(touching["contacts"]) > 0, "bodies 1.5 mm apart are inside the 2 mm radius"
     for r in data:
         assert float(r["detect_ms"]) > 0 and float(r["sweep_ms"]) > 0
     for r in piles:

@@ -155,6 +155,74 @@ def test_numpy_twin_finds_the_same_pairs_and_exclusions():
         np.testing.assert_allclose([got[key] for key in want], list(want.values()), rtol=1e-10, atol=1e-14)
 
 
+def _turned(x, rng):
+    """x (N, 3) turned by a random rotation about its centroid: a rigid motion."""
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    Q *= np.sign(np.linalg.det(Q))
+    c = x.mean(axis=0)
+    return (x - c) @ Q.T + c
+
+
+def _bent(x, angle):
+    """The bar x (N, 3) along x from 0 bent about the z axis into an arc of `angle` rad (its two ends meet
+    near 2 pi): its own surfaces come close, and it is far from rigid."""
+    L = x[:, 0].max()
+    R = L / angle
+    s, y = x[:, 0], x[:, 1]
+    return np.stack([(R - y) * np.sin(s / R), R - (R - y) * np.cos(s / R), x[:, 2]], axis=1)
+
+
+def test_bodies_that_cannot_have_pairs_are_left_out_and_the_pairs_stay_exact():
+    """A body far from the others that moved almost rigidly is not searched (`active_bodies`); the pairs
+    are still exactly the brute-force ones whether bodies are turned, shaken, brought together or bent."""
+    from solver.physics.contact_detection import SEARCH_OTHERS, SEARCH_SELF
+
+    solver.ensure_taichi()
+    rng = np.random.default_rng(5)
+    bar = solver.box_mesh(size=(0.3, 0.03, 0.03), cells=(10, 1, 1))
+    cube = solver.box_mesh(size=(0.06, 0.06, 0.06), cells=(2, 2, 2), origin=(0.5, 0.0, 0.0))
+    mesh = solver.merge_meshes([bar, cube])
+    n_bar = bar.n_vertices
+    contact = solver.Contact(radius=0.004, query_radius=0.015)
+    free = np.ones(mesh.n_vertices, dtype=bool)
+    detector = ContactDetector(mesh, free, contact)
+    seen = set()
+    for case in range(40):
+        x = mesh.vertices.copy()
+        x[:n_bar] = _turned(x[:n_bar], rng)
+        x[n_bar:] = _turned(x[n_bar:], rng)
+        if case % 4 == 1:                              # the cube beside the bar, within q of it
+            x = mesh.vertices + np.where(np.arange(mesh.n_vertices)[:, None] < n_bar, 0.0,
+                                         [-0.38, 0.03 + rng.uniform(0.004, 0.012), -0.015])
+            x = _turned(x, rng)
+        if case % 4 == 2:                              # shaken, by up to a few mm
+            x += rng.normal(0, 10 ** rng.uniform(-4.5, -2.5), x.shape)
+        if case % 4 == 3:                              # bent until its ends come near each other
+            x[:n_bar] = _bent(mesh.vertices[:n_bar], rng.uniform(5.2, 5.9))
+        n = detector.detect(_positions(x))
+        flags = detector.active.to_numpy()
+        kind, vertices, primitives, distance = detector.pairs()
+        got = {(int(k), int(a), int(b)) for k, (a, b) in zip(kind, primitives)}
+        want = brute_force_pairs(mesh, x, free, contact)
+        assert got == want.keys() and n == len(want)
+        self_pairs = any(detector.bodies[v[0]] == detector.bodies[v[3]] for v in vertices)
+        if self_pairs:
+            assert flags[detector.bodies[vertices[0, 0]]] & SEARCH_SELF
+        near = any(detector.bodies[v[0]] != detector.bodies[v[3]] for v in vertices)
+        assert bool(flags[0] & SEARCH_OTHERS) == bool(flags[1] & SEARCH_OTHERS)
+        if near:
+            assert flags[0] & SEARCH_OTHERS
+        if case % 4 == 0:                              # turned only: nothing searched, every bound g q
+            assert detector.active_count == 0 and n == 0
+            np.testing.assert_allclose(detector.bound.to_numpy(), contact.bound_relaxation * contact.query_radius)
+            np.testing.assert_array_equal(detector.vertex_pairs()[0], 0)
+        seen.add((case % 4, bool(flags[0] & SEARCH_SELF), self_pairs, near))
+    assert (3, True, True, False) in seen             # the bent bar was searched, and had self pairs
+    assert any(case == 2 and not searched for case, searched, _, _ in seen)   # small shakes stay rigid
+    assert any(case == 2 and searched for case, searched, _, _ in seen)       # larger ones do not
+    assert any(case == 1 and near for case, _, _, near in seen)
+
+
 @pytest.mark.parametrize("serial", [False, True])
 @pytest.mark.parametrize("n,chunk", [(0, 64), (1, 64), (63, 64), (64, 64), (1000, 64), (4097, 100)])
 def test_exclusive_scan_is_the_cumulative_sum(n, chunk, serial):

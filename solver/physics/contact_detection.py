@@ -1,8 +1,11 @@
 """Finding the pairs of contact (issue 17): a hashed uniform grid built by Taichi kernels at each detection,
 the exact distance of every candidate, per-vertex incidence lists and OGC's conservative bounds.
 
-One detection is one kernel launch (its top-level loops run one after the other on the device):
-  1. every triangle and edge gets its box, as a range of grid cells;
+One detection is two kernel launches (their top-level loops run one after the other on the device):
+  0. the bodies that can have no pair are left out (`active_bodies`): a body whose box, grown by q, meets
+     no other body's box has no pair with another body, and one that has moved almost rigidly since rest
+     has no self pair (below). Their primitives go into no grid and make no query;
+  1. every triangle and edge of the other bodies gets its box, as a range of grid cells;
   2. the grid: count the entries of each hash bucket, prefix sum, scatter the items into their
      buckets, sort each bucket (so that everything after is deterministic);
   3. every surface vertex looks up the triangles in the cells within q (the query radius) of it, and
@@ -16,7 +19,15 @@ One detection is one kernel launch (its top-level loops run one after the other 
   5. the bound b_v = g min(q, distance of v's closest pair) of every vertex (g = bound_relaxation).
 
 Filters: the primitives share no vertex; they belong to different bodies, or (with self_contact) to one
-body and were not closer than q at rest; at least one of the four vertices is free. Buffers grow when a
+body and were not closer than q at rest; at least one of the four vertices is free.
+
+Why a body that moved almost rigidly has no self pair: let (R, c) be a rotation and translation and
+delta = max |x_v - c - R (X_v - C)| over its surface vertices v (X: rest positions, C: their mean). A
+rigid motion keeps every distance, and moving each vertex by at most delta moves each point of a triangle
+or edge (a convex combination of its vertices) by at most delta, so two primitives D apart at rest are
+at least D - 2 delta apart now. The same-body pairs that are not excluded were D >= q apart at rest; if
+the closest of them (D_min, listed once at rest, capped at REST_MARGIN q) has D_min - 2 delta > q, none is
+within q. Any rotation R keeps this true; `best_rotation` takes one near the best fit. Buffers grow when a
 detection needs more room (no pair is ever dropped: the launch is repeated); otherwise nothing is
 allocated per detection.
 """
@@ -31,6 +42,10 @@ from .contact import Contact, PairKind, edge_edge, edge_edge_np, point_triangle,
 HASH_PRIMES = (73856093, 19349663, 83492791)
 BUCKETS_PER_ITEM = 4
 CELL_PER_EDGE = 1.25     # grid cell edge / (mean surface edge or 2 q, the larger): fastest of 0.75-2 measured
+REST_MARGIN = 2.0        # the same-body pairs closer than this x q at rest are listed once, for D_min
+POLAR_ITERATIONS = 8     # `best_rotation`: Newton steps towards the polar factor (any rotation is safe)
+SEARCH_OTHERS, SEARCH_SELF = 1, 2    # `active_bodies` flags: a body may have pairs with others / with itself
+RIGID_SLACK = 1e-3       # x q: round-off allowance when `active_bodies` compares 2 delta with D_min - q
 
 
 @ti.func
@@ -62,6 +77,86 @@ def item_box(positions: ti.template(), row, triangles: ti.template(), edges: ti.
         lower = ti.min(a, b)
         upper = ti.max(a, b)
     return lower, upper
+
+
+@ti.func
+def best_rotation(A):
+    """An orthogonal 3x3 matrix near the rotation part of A (3x3, the cross-covariance of current and rest
+    positions): a few Newton steps R <- (R + R^-T) / 2 towards A's polar factor, then Gram-Schmidt, so that
+    R is orthogonal whatever A was (the identity if A is singular). Only orthogonality matters for
+    `active_bodies`' bound; a better fit only leaves out more bodies."""
+    R = A / (A.norm() + 1e-300)
+    for _ in range(POLAR_ITERATIONS):
+        if ti.abs(R.determinant()) > 1e-12:
+            R = 0.5 * (R + R.inverse().transpose())
+    c0 = ti.Vector([R[0, 0], R[1, 0], R[2, 0]])
+    c1 = ti.Vector([R[0, 1], R[1, 1], R[2, 1]])
+    c2 = ti.Vector([R[0, 2], R[1, 2], R[2, 2]])
+    c0 = c0 / (c0.norm() + 1e-300)
+    c1 = c1 - c0.dot(c1) * c0
+    c1 = c1 / (c1.norm() + 1e-300)
+    c2 = c2 - c0.dot(c2) * c0 - c1.dot(c2) * c1
+    c2 = c2 / (c2.norm() + 1e-300)
+    Q = ti.Matrix.cols([c0, c1, c2])
+    if ti.abs((Q.transpose() @ Q - ti.Matrix.identity(ti.f64, 3)).norm()) > 1e-9:
+        Q = ti.Matrix.identity(ti.f64, 3)
+    return Q
+
+
+@ti.kernel
+def active_bodies(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
+                  body: ti.types.ndarray(), rest: ti.types.ndarray(), rest_centroid: ti.types.ndarray(),
+                  count: ti.types.ndarray(), has_free: ti.types.ndarray(), margin: ti.types.ndarray(),
+                  lo: ti.types.ndarray(), hi: ti.types.ndarray(), centroid: ti.types.ndarray(),
+                  rotation: ti.types.ndarray(), deviation: ti.types.ndarray(), active: ti.types.ndarray(),
+                  q: ti.f64, self_contact: ti.i32, serial: ti.template()) -> ti.i32:
+    """Step 0 of the module docstring: active[b] = the pairs body b may have at x = positions[row], as flags
+    SEARCH_OTHERS (its box grown by q meets another body's; one of them has a free vertex) and SEARCH_SELF
+    (with self contact: it has a free vertex and moved too far from rigid); returns how many bodies have
+    any. vertices (V,) the surface vertices, rest (V,) their rest
+    positions, and per body (B,): rest_centroid C, count its surface vertices, has_free whether it has a
+    free vertex, margin D_min - q in m; lo/hi (the boxes), centroid, rotation (3x3) and deviation (delta,
+    m) are scratch. In float64 whatever the positions' type."""
+    n_bodies = active.shape[0]
+    ti.loop_config(serialize=serial)
+    for b in range(n_bodies):
+        lo[b] = ti.Vector([1e300, 1e300, 1e300])
+        hi[b] = ti.Vector([-1e300, -1e300, -1e300])
+        centroid[b] = ti.Vector.zero(ti.f64, 3)
+        rotation[b] = ti.Matrix.zero(ti.f64, 3, 3)
+        deviation[b] = 0.0
+    ti.loop_config(serialize=serial)
+    for k in range(vertices.shape[0]):
+        b = body[vertices[k]]
+        p = ti.cast(positions[row, vertices[k]], ti.f64)
+        for j in ti.static(range(3)):
+            ti.atomic_min(lo[b][j], p[j])
+            ti.atomic_max(hi[b][j], p[j])
+            ti.atomic_add(centroid[b][j], p[j] / count[b])
+        rotation[b] += p.outer_product(rest[k] - rest_centroid[b])   # sum of x (X - C)^T: c drops out
+    ti.loop_config(serialize=serial)
+    for b in range(n_bodies):
+        rotation[b] = best_rotation(rotation[b])
+    ti.loop_config(serialize=serial)
+    for k in range(vertices.shape[0]):
+        b = body[vertices[k]]
+        p = ti.cast(positions[row, vertices[k]], ti.f64)
+        ti.atomic_max(deviation[b], (p - centroid[b] - rotation[b] @ (rest[k] - rest_centroid[b])).norm())
+    n_active = 0
+    ti.loop_config(serialize=serial)
+    for b in range(n_bodies):
+        rigid = 2 * deviation[b] < margin[b] - RIGID_SLACK * q       # false for NaN: then b is searched
+        search = 0
+        if self_contact != 0 and has_free[b] != 0 and not rigid:
+            search = SEARCH_SELF
+        for c in range(n_bodies):
+            if c != b and (has_free[b] != 0 or has_free[c] != 0):
+                if (lo[b] - q <= hi[c]).all() and (lo[c] <= hi[b] + q).all():
+                    search |= SEARCH_OTHERS
+        active[b] = search
+        if search != 0:
+            n_active += 1
+    return n_active
 
 
 @ti.func
@@ -129,15 +224,18 @@ def is_excluded(keys: ti.template(), n_keys, key):
 
 
 @ti.func
-def admissible(same_body, excluded: ti.template(), n_excluded, key, self_contact, rest_mode):
+def admissible(same_body, search, excluded: ti.template(), n_excluded, key, rest_mode):
     """Whether two primitives that share no vertex, not both still, make a pair (module docstring):
-    same_body, `key` their entry in the sorted rest exclusions. In rest mode: whether they lie in one
+    same_body, search the first one's body's `active_bodies` flags, `key` their entry in the sorted rest
+    exclusions (looked up only for a body that may have self pairs). In rest mode: whether they lie in one
     body (to list the self-contact exclusions at rest)."""
     ok = same_body
     if rest_mode == 0:
         ok = True
         if same_body:
-            ok = self_contact != 0 and not is_excluded(excluded, n_excluded, key)
+            ok = False
+            if search & SEARCH_SELF:
+                ok = not is_excluded(excluded, n_excluded, key)
     return ok
 
 
@@ -149,6 +247,21 @@ def first_in_bucket(entries: ti.template(), begin, e):
     if e > begin:
         first = entries[e - 1] != entries[e]
     return first
+
+
+@ti.func
+def new_candidate(entries: ti.template(), lo: ti.template(), moving: ti.template(), begin, e, lo_query, c, still):
+    """Whether the item entries[e], in cell c's bucket (which starts at begin), is one the query whose cell
+    range starts at lo_query has not met in a cell before: c is the lowest cell of both ranges (lo[item]
+    the item's first cell) and the entry is the item's first in the bucket; for a still query, only items
+    with a free vertex (moving). The cheapest tests first: most entries fail the first."""
+    new = False
+    if (ti.max(lo_query, lo[entries[e]]) == c).all():
+        if first_in_bucket(entries, begin, e):
+            new = True
+            if still:
+                new = moving[entries[e]] != 0
+    return new
 
 
 @ti.func
@@ -182,7 +295,8 @@ def record(counter: ti.template(), found_query: ti.template(), found_rank: ti.te
 @ti.kernel
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
-                 free: ti.types.ndarray(), moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
+                 active: ti.types.ndarray(), free: ti.types.ndarray(), moving: ti.types.ndarray(),
+                 excluded_vt: ti.types.ndarray(),
                  n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
                  box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
                  bucket_fill: ti.types.ndarray(), bucket_start: ti.types.ndarray(), entries: ti.types.ndarray(),
@@ -192,9 +306,10 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                  query_start: ti.types.ndarray(), vertex_fill: ti.types.ndarray(), kind: ti.types.ndarray(),
                  pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
                  offsets: ti.types.ndarray(), incidence: ti.types.ndarray(), bound: ti.types.ndarray(),
-                 q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32, self_contact: ti.i32,
+                 q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32,
                  rest_mode: ti.i32, serial: ti.template(), dtype: ti.template()) -> ti.i32:
-    """Steps 1-5 of the module docstring in one launch. Grid: box_lo/box_hi (T + E,) the items' boxes
+    """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
+    every body in rest mode). Grid: box_lo/box_hi (T + E,) the items' boxes
     (triangles, then edges), lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit,
     bucket_start (B + 1,) and entries the items of each bucket, ascending; moving (T + E,) whether an
     item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes its pairs
@@ -211,11 +326,15 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     n_buckets = bucket_fill.shape[0]
     n = vertex_fill.shape[0]
     for item in range(n_items):
-        lower, upper = item_box(positions, row, triangles, edges, item, dtype)
-        box_lo[item] = lower
-        box_hi[item] = upper
-        lo[item] = cell_of(lower, cell)
-        hi[item] = cell_of(upper, cell)
+        first = triangles[item][0] if item < n_triangles else edges[item - n_triangles][0]
+        lo[item] = ti.Vector([0, 0, 0])
+        hi[item] = ti.Vector([-1, -1, -1])        # no cell: an item of a body left out
+        if rest_mode != 0 or active[body[first]] != 0:
+            lower, upper = item_box(positions, row, triangles, edges, item, dtype)
+            box_lo[item] = lower
+            box_hi[item] = upper
+            lo[item] = cell_of(lower, cell)
+            hi[item] = cell_of(upper, cell)
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
                                   (lo[item][2], hi[item][2] + 1)):
             ti.atomic_add(bucket_fill[cell_hash(ti.Vector([i, j, k]), mask)], 1)
@@ -234,7 +353,11 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
         sort_segment(entries, bucket_start[h], bucket_start[h + 1])
     for query in range(n_vertices + n_edges if fits else 0):
         rank = 0
-        if query < n_vertices:                  # a surface vertex against the triangles
+        searched = True
+        if rest_mode == 0:
+            first = vertices[query] if query < n_vertices else edges[query - n_vertices][0]
+            searched = active[body[first]] != 0
+        if searched and query < n_vertices:     # a surface vertex against the triangles
             v = vertices[query]
             still = free[v] == 0 and rest_mode == 0
             p = positions[row, v]
@@ -250,13 +373,12 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                     item = entries[e]
                     if item >= n_triangles:     # the triangles come first in a bucket, then the edges
                         break
-                    if ((not still or moving[item] != 0) and first_in_bucket(entries, begin, e)
-                            and (ti.max(lo_p, lo[item]) == c).all()):
+                    if new_candidate(entries, lo, moving, begin, e, lo_p, c, still):
                         t = triangles[item]
                         near = (p_lo <= box_hi[item]).all() and (box_lo[item] <= p_hi).all()
                         if near and v != t[0] and v != t[1] and v != t[2]:
                             key = ti.cast(v, ti.i64) * n_triangles + item
-                            if admissible(body[v] == body[t[0]], excluded_vt, n_excluded_vt, key, self_contact,
+                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, n_excluded_vt, key,
                                           rest_mode):
                                 d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
                                                       positions[row, t[2]], dtype)
@@ -264,7 +386,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                                     record(counter, found_query, found_rank, found_partner, found_distance,
                                            query, rank, item, d)
                                     rank += 1
-        else:                                   # an edge against the edges of higher index
+        elif searched:                          # an edge against the edges of higher index
             a = query - n_vertices
             ea = edges[a]
             still = moving[n_triangles + a] == 0 and rest_mode == 0
@@ -281,15 +403,14 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 for e in range(first_above(entries, begin, end, n_triangles + a), end):
                     item = entries[e]
                     b = item - n_triangles
-                    if ((not still or moving[item] != 0) and first_in_bucket(entries, begin, e)
-                            and (ti.max(lo_a, lo[item]) == c).all()):
+                    if new_candidate(entries, lo, moving, begin, e, lo_a, c, still):
                         eb = edges[b]
                         near = (lower <= box_hi[item]).all() and (box_lo[item] <= upper).all()
                         disjoint = ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]
                         if near and disjoint:
                             key = ti.cast(a, ti.i64) * n_edges + b
-                            if admissible(body[ea[0]] == body[eb[0]], excluded_ee, n_excluded_ee, key, self_contact,
-                                          rest_mode):
+                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee, n_excluded_ee,
+                                          key, rest_mode):
                                 d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
                                 if d < q:
                                     record(counter, found_query, found_rank, found_partner, found_distance,
@@ -332,6 +453,16 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     return n_pairs if fits else -n_entries
 
 
+@ti.kernel
+def no_pairs(offsets: ti.types.ndarray(), bound: ti.types.ndarray(), b: ti.f64, dtype: ti.template()):
+    """The incidence lists (offsets (N + 1,)) and bounds (N,) of a detection without pairs: empty lists,
+    and every bound b = g q in m."""
+    for v in range(bound.shape[0]):
+        offsets[v + 1] = 0
+        bound[v] = ti.cast(b, dtype)
+    offsets[0] = 0
+
+
 class ContactDetector:
     """The pairs of one mesh under one `Contact`, found again by each `detect`.
 
@@ -343,7 +474,8 @@ class ContactDetector:
       kind (P,) int32 `PairKind`; pair (P,) 4-vectors of vertices (p, a, b, c or a0, a1, b0, b1);
       primitives (P,) 2-vectors (vertex, triangle or edge, edge); distance (P,) in m;
     and per vertex: incidence_offsets (N + 1,), incidence (4P,) pair ids, ascending per vertex;
-    bound (N,) b_v = bound_relaxation min(query_radius, distance of v's closest pair) in m.
+    bound (N,) b_v = bound_relaxation min(query_radius, distance of v's closest pair) in m;
+    and per body (B,): active, 1 for the bodies searched (`active_bodies`), active_count of them.
     """
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype=ti.f64):
@@ -391,16 +523,57 @@ class ContactDetector:
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = _device(empty, ti.i64), _device(empty, ti.i64)
         self._n_excluded = (0, 0)
+        B = int(self.bodies.max()) + 1
+        self.active = ti.ndarray(ti.i32, B)
+        self.active.fill(1)
+        self.active_count = B
+        margin = np.full(B, (REST_MARGIN - 1) * contact.query_radius)   # D_min - q, m
         if contact.self_contact:
-            rest = ti.Vector.ndarray(3, dtype, (1, n))
-            rest.from_numpy(mesh.vertices[None].astype(np.float32 if dtype == ti.f32 else np.float64))
-            self._detect(rest, 0, rest_mode=True)
-            kind, _, primitives, _ = self.pairs()
-            keys = [np.unique(primitives[kind == k, 0].astype(np.int64) * size + primitives[kind == k, 1])
-                    for k, size in ((PairKind.VERTEX_TRIANGLE, T), (PairKind.EDGE_EDGE, E))]
-            self._excluded_vt, self._excluded_ee = (_device(np.concatenate([k, empty]), ti.i64) for k in keys)
-            self._n_excluded = (len(keys[0]), len(keys[1]))
-            self.n_pairs = 0
+            margin = self._rest_exclusions(mesh, margin)
+        self._init_bodies(mesh.vertices, free, margin)
+
+    def _rest_exclusions(self, mesh, margin: np.ndarray) -> np.ndarray:
+        """List the same-body pairs closer than q at rest (never pairs, sorted keys on the device) and
+        return margin (B,) lowered to D_min - q per body from those REST_MARGIN q or closer (module
+        docstring)."""
+        q = self.contact.query_radius
+        T, E = len(self.surface.triangles), len(self.surface.edges)
+        rest = ti.Vector.ndarray(3, self.dtype, (1, mesh.n_vertices))
+        rest.from_numpy(mesh.vertices[None].astype(np.float32 if self.dtype == ti.f32 else np.float64))
+        self._detect(rest, 0, rest_mode=True, q=REST_MARGIN * q)
+        kind, vertices, primitives, distance = self.pairs()
+        close = distance < q
+        keys = [np.unique(primitives[close & (kind == k), 0].astype(np.int64) * size + primitives[close & (kind == k), 1])
+                for k, size in ((PairKind.VERTEX_TRIANGLE, T), (PairKind.EDGE_EDGE, E))]
+        empty = np.zeros(1, dtype=np.int64)
+        self._excluded_vt, self._excluded_ee = (_device(np.concatenate([k, empty]), ti.i64) for k in keys)
+        self._n_excluded = (len(keys[0]), len(keys[1]))
+        self.n_pairs = 0
+        np.minimum.at(margin, self.bodies[vertices[~close, 0]], distance[~close].astype(np.float64) - q)
+        return margin
+
+    def _init_bodies(self, rest: np.ndarray, free: np.ndarray, margin: np.ndarray):
+        """The per-body arrays of `active_bodies`: rest (N, 3) positions, free (N,) bool, margin (B,) m."""
+        B = len(margin)
+        surface_body = self.bodies[self.surface.vertices]
+        X = rest[self.surface.vertices].astype(np.float64)
+        count = np.bincount(surface_body, minlength=B)
+        centroid = np.stack([np.bincount(surface_body, X[:, k], minlength=B) for k in range(3)], axis=1)
+        centroid /= np.maximum(count, 1)[:, None]
+        has_free = np.zeros(B, dtype=np.int32)
+        np.maximum.at(has_free, self.bodies, free.astype(np.int32))
+        self._rest_surface = ti.Vector.ndarray(3, ti.f64, len(X))
+        self._rest_surface.from_numpy(X)
+        self._rest_centroid = ti.Vector.ndarray(3, ti.f64, B)
+        self._rest_centroid.from_numpy(centroid)
+        self._surface_count = _device(count.astype(np.int32), ti.i32)
+        self._has_free = _device(has_free, ti.i32)
+        self._margin = _device(margin, ti.f64)
+        self._body_lo = ti.Vector.ndarray(3, ti.f64, B)
+        self._body_hi = ti.Vector.ndarray(3, ti.f64, B)
+        self._body_centroid = ti.Vector.ndarray(3, ti.f64, B)
+        self._rotation = ti.Matrix.ndarray(3, 3, ti.f64, B)
+        self._deviation = ti.ndarray(ti.f64, B)
 
     def _allocate_pairs(self, capacity: int):
         self._capacity = capacity
@@ -414,19 +587,30 @@ class ContactDetector:
         self.distance = ti.ndarray(self.dtype, capacity)
         self.incidence = ti.ndarray(ti.i32, 4 * capacity)
 
-    def _detect(self, positions, row: int, rest_mode: bool) -> int:
-        """One launch of `detect_pairs`, again after growing a buffer that was too small."""
+    def _detect(self, positions, row: int, rest_mode: bool, q: float = None) -> int:
+        """`active_bodies` (not in rest mode), then one launch of `detect_pairs`, again after growing a
+        buffer that was too small. q: the query radius, m (None: the contact's)."""
         c = self.contact
+        q = c.query_radius if q is None else q
+        if not rest_mode:
+            self.active_count = active_bodies(positions, row, self._vertices, self._body, self._rest_surface,
+                                              self._rest_centroid, self._surface_count, self._has_free, self._margin,
+                                              self._body_lo, self._body_hi, self._body_centroid, self._rotation,
+                                              self._deviation, self.active, q, int(c.self_contact), self._serial)
+            if self.active_count == 0:
+                no_pairs(self.incidence_offsets, self.bound, c.bound_relaxation * q, self.dtype)
+                self.n_pairs = 0
+                return 0
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
-                                 self._free, self._moving, self._excluded_vt, self._n_excluded[0],
+                                 self.active, self._free, self._moving, self._excluded_vt, self._n_excluded[0],
                                  self._excluded_ee, self._n_excluded[1], self._box_lo, self._box_hi, self._lo, self._hi,
                                  self._bucket_fill, self._bucket_start, self._entries, self._partial,
                                  self._counter, self._found_query, self._found_rank, self._found_partner,
                                  self._found_distance, self._query_count, self._query_start, self._vertex_fill,
                                  self.kind, self.pair, self.primitives, self.distance, self.incidence_offsets,
-                                 self.incidence, self.bound, c.query_radius, c.bound_relaxation, self.cell,
-                                 self._mask, self._chunk, int(c.self_contact), int(rest_mode), self._serial,
+                                 self.incidence, self.bound, q, c.bound_relaxation, self.cell,
+                                 self._mask, self._chunk, int(rest_mode), self._serial,
                                  self.dtype)
             if found < 0:
                 self._entries = ti.ndarray(ti.i32, -2 * found)
