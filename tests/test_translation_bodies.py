@@ -119,3 +119,29 @@ def test_the_correction_never_increases_G_and_keeps_every_vertex_within_its_boun
         seen["scaled"] += (correction.alpha.to_numpy()[1:] < 1).any()
     assert seen["decreased"] > 0 and seen[what] > 0, seen
     assert sim.contact_count() > 0
+
+
+def test_the_sums_are_taken_in_a_fixed_order_so_that_runs_repeat_bit_for_bit():
+    """On the CPU each body's F_b and D_b are summed from its vertices' terms kept per vertex, one body on
+    one thread, whatever order the threads computed the terms in; two runs of a small pile with contact
+    then give the same positions bit for bit (atomic float adds made long piles differ between runs)."""
+    sim, _ = _two_cubes_on_a_slab(0.002, contact=solver.Contact(stiffness=1e3, radius=0.005))
+    sim.set_positions(sim.positions + np.random.default_rng(3).normal(0, 1e-4, sim.positions.shape)
+                      * sim.free_mask[:, None])
+    sim.begin_step()
+    translation = sim._body_translation
+    assert translation._ordered
+    translation.apply(sim.state, sim._mass, sim._adjacency, sim._params, None, sim.dtype)
+    f_i, diagonal_i, F, D = (a.to_numpy() for a in (translation._f_i, translation._diagonal_i, translation.F,
+                                                     translation.D))
+    for b in np.flatnonzero(translation.corrected):
+        members = np.flatnonzero(sim.bodies == b)
+        scale = np.abs(f_i[members]).sum(axis=0)
+        np.testing.assert_allclose(F[b], f_i[members].sum(axis=0), rtol=0, atol=1e-12 * scale.max())
+        np.testing.assert_allclose(D[b], diagonal_i[members].sum(axis=0), rtol=1e-12)
+    runs = []
+    for _ in range(2):
+        sim, _ = _two_cubes_on_a_slab(0.002, contact=solver.Contact(stiffness=1e3, radius=0.005, friction=0.3))
+        sim.step(15)
+        runs.append(sim.positions)
+    np.testing.assert_array_equal(runs[0], runs[1])

@@ -55,6 +55,7 @@ d (B,) 3-vectors in m, alpha (B,); all per-body sums in float64.
 import numpy as np
 
 from .._ti import ti
+from ..backend import running_on_cpu
 
 from ..physics.contact import barrier, barrier_derivatives, contact_force_hessian, contact_friction, pair_geometry
 from ..physics.ground import ground_energy, ground_hessian_zz
@@ -70,10 +71,14 @@ TRIALS = 4   # with contact, the scales 1, 1/2, 1/4, 1/8 of the step are tried (
 def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
               offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
               params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
-              F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(), touching: ti.types.ndarray(),
-              dtype: ti.template()):
+              members: ti.types.ndarray(), member_starts: ti.types.ndarray(), f_i: ti.types.ndarray(),
+              diagonal_i: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(),
+              touching: ti.types.ndarray(), ordered: ti.template(), dtype: ti.template()):
     """F_b = sum_i f_i and D_b = the diagonal of sum_i m_i/h^2 I + ground block over the vertices of each
-    corrected body b (segmented sums by body label); K_b and touching_b cleared."""
+    corrected body b; K_b and touching_b cleared. ordered: each vertex's terms go to f_i (N,) and
+    diagonal_i (N,) first, then each body sums its own in the order of `members` (its vertices are
+    members[member_starts[b]:member_starts[b + 1]]), the same sums on every run; else (on a GPU, where one
+    thread per body would be slow) they are added at once, in whatever order the threads come."""
     for b in range(F.shape[0]):
         F[b] = ti.Vector.zero(ti.f64, 3)
         D[b] = ti.Vector.zero(ti.f64, 3)
@@ -89,8 +94,18 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
             diagonal = ti.Vector([M[0, 0], M[1, 1], M[2, 2]])
             if params[GROUND] > 0:
                 diagonal[2] += ground_hessian_zz(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS])
-            F[b] += ti.cast(f, ti.f64)
-            D[b] += ti.cast(diagonal, ti.f64)
+            if ti.static(ordered):
+                f_i[i] = ti.cast(f, ti.f64)
+                diagonal_i[i] = ti.cast(diagonal, ti.f64)
+            else:
+                F[b] += ti.cast(f, ti.f64)
+                D[b] += ti.cast(diagonal, ti.f64)
+    if ti.static(ordered):
+        for b in range(F.shape[0]):
+            if corrected[b]:
+                for s in range(member_starts[b], member_starts[b + 1]):
+                    F[b] += f_i[members[s]]
+                    D[b] += diagonal_i[members[s]]
 
 
 @ti.kernel
@@ -98,14 +113,16 @@ def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.type
               x_det: ti.types.ndarray(), distance: ti.types.ndarray(), live: ti.types.ndarray(),
               body: ti.types.ndarray(), corrected: ti.types.ndarray(), F: ti.types.ndarray(), K: ti.types.ndarray(),
               touching: ti.types.ndarray(), params: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
-              friction_speed: ti.f64, dtype: ti.template()):
+              friction_speed: ti.f64, ordered: ti.template(), dtype: ti.template()):
     """Add to F_b and K_b of each corrected body its pairs with other bodies closer than r, the body acting
     on the pair as one vertex of weight s_b = sum of the pair's weights on its side (module docstring);
     pair (P,) 4-vectors of vertices and kind (P,) `PairKind` as the detector left them, distance (P,) in m
     at the positions x_det (N,) of the last refresh and live (P,) int32 its flags (pairs that cannot be
-    within r are skipped: not live, or `contact_sweep.may_be_within`)."""
+    within r are skipped: not live, or `contact_sweep.may_be_within`). ordered: on one thread, in the
+    order of the pairs (the same sums on every run)."""
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
+    ti.loop_config(serialize=ordered)
     for p in range(n_pairs):
         if not live[p]:
             continue
@@ -175,30 +192,43 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
                    params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
                    d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
                    pair: ti.types.ndarray(), n_pairs: ti.i32, x_det: ti.types.ndarray(), distance: ti.types.ndarray(),
-                   live: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, change: ti.types.ndarray()):
+                   live: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, change_i: ti.types.ndarray(),
+                   change: ti.types.ndarray(), ordered: ti.template()):
     """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
     corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
     elastic energy and the pairs within a body do not change under a translation of the body). A pair that
     cannot come within r under the largest of the translations is skipped: not live (the translations keep
     every vertex within its bound, `limit_to_bounds`), or by `contact_sweep.may_be_within` (x_det,
-    distance, live as for `pair_sums`)."""
+    distance, live as for `pair_sums`). ordered: the vertices' changes go to change_i (N,) TRIALS-vectors
+    first and are summed on one thread, as are the pairs' (the same sums on every run)."""
     for s in ti.static(range(TRIALS)):
         change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
     height, k_g = ti.cast(params[GROUND_HEIGHT], ti.f64), ti.cast(params[GROUND_STIFFNESS], ti.f64)
     for k in range(color_order.shape[0]):
         i = color_order[k]
+        delta = ti.Vector.zero(ti.f64, TRIALS)
         if corrected[body[i]]:
             x, y = ti.cast(state[X, i], ti.f64), ti.cast(state[Y, i], ti.f64)
             m_h2 = inv_h2 * ti.cast(mass[i], ti.f64)
             scale = ti.cast(1.0, ti.f64)
-            for s in range(TRIALS):
+            for s in ti.static(range(TRIALS)):
                 t = body_shift(i, body, corrected, d, alpha, scale)
-                delta = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
+                delta[s] = inertia_energy(m_h2, x + t, y) - inertia_energy(m_h2, x, y)
                 if params[GROUND] > 0:
-                    delta += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
-                change[s] += delta
+                    delta[s] += ground_energy(x[2] + t[2], height, k_g) - ground_energy(x[2], height, k_g)
                 scale *= 0.5
+        if ti.static(ordered):
+            change_i[i] = delta
+        else:
+            for s in ti.static(range(TRIALS)):
+                change[s] += delta[s]
+    if ti.static(ordered):
+        ti.loop_config(serialize=True)
+        for k in range(color_order.shape[0]):
+            for s in ti.static(range(TRIALS)):
+                change[s] += change_i[color_order[k]][s]
+    ti.loop_config(serialize=ordered)
     for p in range(n_pairs):
         if not live[p]:
             continue
@@ -285,19 +315,29 @@ class BodyTranslation:
         self.alpha = ti.ndarray(ti.f64, n_bodies)
         self._changes = ti.ndarray(ti.f64, TRIALS)
         self.scale = 1.0
+        members = np.argsort(bodies, kind="stable").astype(np.int32)     # each body's vertices, ascending
+        self._members = ti.ndarray(ti.i32, len(bodies))
+        self._members.from_numpy(members)
+        self._member_starts = ti.ndarray(ti.i32, n_bodies + 1)
+        self._member_starts.from_numpy(np.searchsorted(bodies[members], np.arange(n_bodies + 1)).astype(np.int32))
+        self._f_i = ti.Vector.ndarray(3, ti.f64, len(bodies))
+        self._diagonal_i = ti.Vector.ndarray(3, ti.f64, len(bodies))
+        self._change_i = ti.Vector.ndarray(TRIALS, ti.f64, len(bodies))
+        self._ordered = running_on_cpu()    # sums in a fixed order: the same steps on every run
 
     def apply(self, state, mass, adjacency, params, contact_stage, dtype) -> None:
         """Translate every corrected body by its alpha_b d_b at the current positions; contact_stage: the
         simulation's `ContactStage` (its pairs, x_det and bounds), or None."""
         color_order, offsets, others, adj_f, _ = adjacency
         body, corrected = self.body, self._corrected
-        body_sums(state, mass, color_order, offsets, others, adj_f, params, body, corrected, self.F, self.D, self.K,
-                  self.touching, dtype)
+        body_sums(state, mass, color_order, offsets, others, adj_f, params, body, corrected, self._members,
+                  self._member_starts, self._f_i, self._diagonal_i, self.F, self.D, self.K, self.touching,
+                  self._ordered, dtype)
         if contact_stage is not None:
             det, c = contact_stage.detector, contact_stage.contact
             pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance,
                       contact_stage.live, body, corrected, self.F, self.K, self.touching, params, c.stiffness,
-                      c.radius, c.friction, c.friction_speed, dtype)
+                      c.radius, c.friction, c.friction_speed, self._ordered, dtype)
         body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha)
         self.scale = 1.0
         if contact_stage is not None:
@@ -305,7 +345,7 @@ class BodyTranslation:
                             contact_stage.bound)
             energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
                            det.n_pairs, contact_stage.x_det, contact_stage.distance, contact_stage.live,
-                           c.stiffness, c.radius, self._changes)
+                           c.stiffness, c.radius, self._change_i, self._changes, self._ordered)
             descending = np.flatnonzero(self._changes.to_numpy() <= 0)
             self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
         translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
