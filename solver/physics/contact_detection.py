@@ -98,7 +98,7 @@ def best_rotation(A):
     c2 = c2 - c0.dot(c2) * c0 - c1.dot(c2) * c1
     c2 = c2 / (c2.norm() + 1e-300)
     Q = ti.Matrix.cols([c0, c1, c2])
-    if ti.abs((Q.transpose() @ Q - ti.Matrix.identity(ti.f64, 3)).norm()) > 1e-9:
+    if (Q.transpose() @ Q - ti.Matrix.identity(ti.f64, 3)).norm() > 1e-9:
         Q = ti.Matrix.identity(ti.f64, 3)
     return Q
 
@@ -113,10 +113,10 @@ def active_bodies(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types
     """Step 0 of the module docstring: active[b] = the pairs body b may have at x = positions[row], as flags
     SEARCH_OTHERS (its box grown by q meets another body's; one of them has a free vertex) and SEARCH_SELF
     (with self contact: it has a free vertex and moved too far from rigid); returns how many bodies have
-    any. vertices (V,) the surface vertices, rest (V,) their rest
-    positions, and per body (B,): rest_centroid C, count its surface vertices, has_free whether it has a
-    free vertex, margin D_min - q in m; lo/hi (the boxes), centroid, rotation (3x3) and deviation (delta,
-    m) are scratch. In float64 whatever the positions' type."""
+    any. vertices (V,) the surface vertices, rest (V,) their rest positions, and per body (B,):
+    rest_centroid C, count its surface vertices, has_free whether it has a free vertex, margin D_min - q
+    in m; lo/hi (the boxes), centroid, rotation (3x3) and deviation (delta, m) are scratch. In float64
+    whatever the positions' type."""
     n_bodies = active.shape[0]
     ti.loop_config(serialize=serial)
     for b in range(n_bodies):
@@ -475,7 +475,8 @@ class ContactDetector:
       primitives (P,) 2-vectors (vertex, triangle or edge, edge); distance (P,) in m;
     and per vertex: incidence_offsets (N + 1,), incidence (4P,) pair ids, ascending per vertex;
     bound (N,) b_v = bound_relaxation min(query_radius, distance of v's closest pair) in m;
-    and per body (B,): active, 1 for the bodies searched (`active_bodies`), active_count of them.
+    and per body (B,): active, the `active_bodies` flags of the last detection (0: not searched), and
+    active_count, the bodies searched.
     """
 
     def __init__(self, mesh, free: np.ndarray, contact: Contact, dtype=ti.f64):
@@ -543,8 +544,9 @@ class ContactDetector:
         self._detect(rest, 0, rest_mode=True, q=REST_MARGIN * q)
         kind, vertices, primitives, distance = self.pairs()
         close = distance < q
-        keys = [np.unique(primitives[close & (kind == k), 0].astype(np.int64) * size + primitives[close & (kind == k), 1])
-                for k, size in ((PairKind.VERTEX_TRIANGLE, T), (PairKind.EDGE_EDGE, E))]
+        keys = [np.unique(primitives[mine, 0].astype(np.int64) * size + primitives[mine, 1])
+                for mine, size in ((close & (kind == PairKind.VERTEX_TRIANGLE), T),
+                                   (close & (kind == PairKind.EDGE_EDGE), E))]
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = (_device(np.concatenate([k, empty]), ti.i64) for k in keys)
         self._n_excluded = (len(keys[0]), len(keys[1]))
