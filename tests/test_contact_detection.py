@@ -223,6 +223,48 @@ def test_bodies_that_cannot_have_pairs_are_left_out_and_the_pairs_stay_exact():
     assert any(case == 1 and near for case, _, _, near in seen)
 
 
+def test_queries_skip_only_their_own_bodys_items():
+    """A query of a body that seeks no self pair skips its own body's run of items in each bucket: the
+    ranges cover exactly each body's triangles and edges where they are contiguous, none where bodies
+    interleave in the numbering, and in both cases the pairs are the brute-force ones."""
+    from solver.physics.contact_detection import SEARCH_SELF, own_item_ranges
+
+    solver.ensure_taichi()
+    rng = np.random.default_rng(11)
+    mesh = _scene(rng, n_bodies=3)
+    surface = surface_primitives(mesh.tets)
+    body = body_labels(mesh.tets, mesh.n_vertices)
+    ranges = own_item_ranges(body, surface)
+    T = len(surface.triangles)
+    for b in range(3):
+        np.testing.assert_array_equal(np.arange(*ranges[b, :2]), np.flatnonzero(body[surface.triangles[:, 0]] == b))
+        np.testing.assert_array_equal(np.arange(*ranges[b, 2:]) - T, np.flatnonzero(body[surface.edges[:, 0]] == b))
+    # the same bodies with their vertices and tets dealt out in turn: every body's items interleave, and
+    # nothing is skipped
+    order = np.argsort(np.arange(mesh.n_vertices) % 5, kind="stable")
+    label = np.empty_like(order)
+    label[order] = np.arange(mesh.n_vertices)
+    tets = label[mesh.tets][np.argsort(np.arange(mesh.n_tets) % 5, kind="stable")]
+    dealt = solver.TetMesh(mesh.vertices[order], tets)
+    dealt_surface = surface_primitives(dealt.tets)
+    np.testing.assert_array_equal(own_item_ranges(body_labels(dealt.tets, dealt.n_vertices), dealt_surface), 0)
+    contact = solver.Contact(radius=0.01, query_radius=0.04)
+    for case_mesh in (mesh, dealt):
+        free = np.ones(case_mesh.n_vertices, dtype=bool)
+        detector = ContactDetector(case_mesh, free, contact)
+        skipped = 0
+        for _ in range(12):
+            x = case_mesh.vertices.copy()
+            for b in range(3):                       # each body turned about its centroid: rigid
+                x[detector.bodies == b] = _turned(x[detector.bodies == b], rng)
+            n = detector.detect(_positions(x))
+            kind, _, primitives, _ = detector.pairs()
+            got = {(int(k), int(a), int(c)) for k, (a, c) in zip(kind, primitives)}
+            assert got == brute_force_pairs(case_mesh, x, free, contact).keys() and n == len(got)
+            skipped += int(((detector.active.to_numpy() & SEARCH_SELF) == 0).sum())
+        assert skipped > 0                           # rigid bodies: their queries did skip their own items
+
+
 @pytest.mark.parametrize("serial", [False, True])
 @pytest.mark.parametrize("n,chunk", [(0, 64), (1, 64), (63, 64), (64, 64), (1000, 64), (4097, 100)])
 def test_exclusive_scan_is_the_cumulative_sum(n, chunk, serial):

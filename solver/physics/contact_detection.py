@@ -13,7 +13,10 @@ One detection is two kernel launches (their top-level loops run one after the ot
      once, in the lowest cell the two ranges share (first in each sorted bucket). A candidate whose box
      meets the query's grown one, that passes the filters below and lies closer than q is a pair: one
      pass notes each pair with its query and its rank there, a prefix sum of the counts per query places
-     them in order of query and rank (the same order on every run, whatever the threads did);
+     them in order of query and rank (the same order on every run, whatever the threads did). A query
+     of a body that has no self pair to seek skips its own body's items in each bucket with one binary
+     search, as they cannot be its partners (a body's items are contiguous in the grid's numbering, and
+     a bucket is sorted, so they form one run there);
   4. per-vertex incidence lists (CSR: offsets, pair ids ascending), so that a vertex gathers its terms
      without atomics;
   5. the bound b_v = g min(q, distance of v's closest pair) of every vertex (g = bound_relaxation).
@@ -295,8 +298,8 @@ def record(counter: ti.template(), found_query: ti.template(), found_rank: ti.te
 @ti.kernel
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
-                 active: ti.types.ndarray(), free: ti.types.ndarray(), moving: ti.types.ndarray(),
-                 excluded_vt: ti.types.ndarray(),
+                 active: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
+                 moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
                  n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
                  box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
                  bucket_fill: ti.types.ndarray(), bucket_start: ti.types.ndarray(), entries: ti.types.ndarray(),
@@ -309,7 +312,9 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                  q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32,
                  rest_mode: ti.i32, serial: ti.template(), dtype: ti.template()) -> ti.i32:
     """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
-    every body in rest mode). Grid: box_lo/box_hi (T + E,) the items' boxes
+    every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
+    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs.
+    Grid: box_lo/box_hi (T + E,) the items' boxes
     (triangles, then edges), lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit,
     bucket_start (B + 1,) and entries the items of each bucket, ascending; moving (T + E,) whether an
     item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes its pairs
@@ -354,9 +359,12 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     for query in range(n_vertices + n_edges if fits else 0):
         rank = 0
         searched = True
+        own = ti.Vector([0, 0, 0, 0])           # the item ranges this query skips: none
         if rest_mode == 0:
             first = vertices[query] if query < n_vertices else edges[query - n_vertices][0]
             searched = active[body[first]] != 0
+            if not active[body[first]] & SEARCH_SELF:
+                own = own_items[body[first]]
         if searched and query < n_vertices:     # a surface vertex against the triangles
             v = vertices[query]
             still = free[v] == 0 and rest_mode == 0
@@ -369,10 +377,14 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 c = ti.Vector([i, j, k])
                 h = cell_hash(c, mask)
                 begin, end = bucket_start[h], bucket_start[h + 1]
-                for e in range(begin, end):
+                e = begin
+                while e < end:
                     item = entries[e]
                     if item >= n_triangles:     # the triangles come first in a bucket, then the edges
                         break
+                    if own[0] <= item < own[1]:         # its own body's run: no partner there
+                        e = first_above(entries, e, end, own[1] - 1)
+                        continue
                     if new_candidate(entries, lo, moving, begin, e, lo_p, c, still):
                         t = triangles[item]
                         near = (p_lo <= box_hi[item]).all() and (box_lo[item] <= p_hi).all()
@@ -386,6 +398,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                                     record(counter, found_query, found_rank, found_partner, found_distance,
                                            query, rank, item, d)
                                     rank += 1
+                    e += 1
         elif searched:                          # an edge against the edges of higher index
             a = query - n_vertices
             ea = edges[a]
@@ -400,7 +413,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 c = ti.Vector([i, j, k])
                 h = cell_hash(c, mask)
                 begin, end = bucket_start[h], bucket_start[h + 1]
-                for e in range(first_above(entries, begin, end, n_triangles + a), end):
+                for e in range(first_above(entries, begin, end, ti.max(n_triangles + a, own[3] - 1)), end):
                     item = entries[e]
                     b = item - n_triangles
                     if new_candidate(entries, lo, moving, begin, e, lo_a, c, still):
@@ -496,6 +509,8 @@ class ContactDetector:
         self._triangles = ti.Vector.ndarray(3, ti.i32, T)
         self._triangles.from_numpy(self.surface.triangles)
         self._body = _device(self.bodies, ti.i32)
+        self._own_items = ti.Vector.ndarray(4, ti.i32, int(self.bodies.max()) + 1)
+        self._own_items.from_numpy(own_item_ranges(self.bodies, self.surface))
         free = np.asarray(free, dtype=bool)
         self._free = _device(free.astype(np.int32), ti.i32)
         self._moving = _device(np.concatenate([free[self.surface.triangles].any(axis=1),
@@ -605,8 +620,9 @@ class ContactDetector:
                 return 0
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
-                                 self.active, self._free, self._moving, self._excluded_vt, self._n_excluded[0],
-                                 self._excluded_ee, self._n_excluded[1], self._box_lo, self._box_hi, self._lo, self._hi,
+                                 self.active, self._own_items, self._free, self._moving, self._excluded_vt,
+                                 self._n_excluded[0], self._excluded_ee, self._n_excluded[1], self._box_lo,
+                                 self._box_hi, self._lo, self._hi,
                                  self._bucket_fill, self._bucket_start, self._entries, self._partial,
                                  self._counter, self._found_query, self._found_rank, self._found_partner,
                                  self._found_distance, self._query_count, self._query_start, self._vertex_fill,
@@ -639,6 +655,26 @@ class ContactDetector:
         ids[offsets[v]:offsets[v + 1]]."""
         offsets = self.incidence_offsets.to_numpy()
         return offsets, self.incidence.to_numpy()[:offsets[-1]]
+
+
+def own_item_ranges(bodies: np.ndarray, surface) -> np.ndarray:
+    """(B, 4) int32: per body, the grid items (triangles 0..T-1, then edges T..T+E-1) of its triangles as
+    [lo, hi) in columns 0-1 and of its edges in columns 2-3, where they are contiguous; (0, 0) where they
+    are not (bodies interleaved in the numbering) or there are none, so that nothing is skipped."""
+    B, T = int(bodies.max()) + 1, len(surface.triangles)
+    ranges = np.zeros((B, 4), dtype=np.int32)
+    for column, (primitives, base) in enumerate(((surface.triangles, 0), (surface.edges, T))):
+        owner = bodies[primitives[:, 0]]
+        index = np.arange(len(owner))
+        count = np.bincount(owner, minlength=B)
+        lo = np.full(B, len(owner))
+        np.minimum.at(lo, owner, index)
+        hi = np.zeros(B, dtype=np.int64)
+        np.maximum.at(hi, owner, index + 1)
+        contiguous = (count > 0) & (hi - lo == count)
+        ranges[contiguous, 2 * column] = lo[contiguous] + base
+        ranges[contiguous, 2 * column + 1] = hi[contiguous] + base
+    return ranges
 
 
 def _device(values: np.ndarray, dtype):
