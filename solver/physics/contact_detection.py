@@ -15,8 +15,9 @@ One detection is two kernel launches (their top-level loops run one after the ot
      pass notes each pair with its query and its rank there, a prefix sum of the counts per query places
      them in order of query and rank (the same order on every run, whatever the threads did). A query
      of a body that has no self pair to seek skips its own body's items in each bucket with one binary
-     search, as they cannot be its partners (a body's items are contiguous in the grid's numbering, and
-     a bucket is sorted, so they form one run there);
+     search, as they cannot be its partners: where a body's triangles (or edges) are contiguous in the
+     grid's numbering, as `merge_meshes` makes them, a sorted bucket holds them as one run
+     (`own_item_ranges`; nothing is skipped where bodies interleave);
   4. per-vertex incidence lists (CSR: offsets, pair ids ascending), so that a vertex gathers its terms
      without atomics;
   5. the bound b_v = g min(q, distance of v's closest pair) of every vertex (g = bound_relaxation).
@@ -509,8 +510,9 @@ class ContactDetector:
         self._triangles = ti.Vector.ndarray(3, ti.i32, T)
         self._triangles.from_numpy(self.surface.triangles)
         self._body = _device(self.bodies, ti.i32)
-        self._own_items = ti.Vector.ndarray(4, ti.i32, int(self.bodies.max()) + 1)
-        self._own_items.from_numpy(own_item_ranges(self.bodies, self.surface))
+        own = own_item_ranges(self.bodies, self.surface)
+        self._own_items = ti.Vector.ndarray(4, ti.i32, len(own))
+        self._own_items.from_numpy(own)
         free = np.asarray(free, dtype=bool)
         self._free = _device(free.astype(np.int32), ti.i32)
         self._moving = _device(np.concatenate([free[self.surface.triangles].any(axis=1),
