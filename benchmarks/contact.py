@@ -7,7 +7,9 @@ Four measurements, all float64 on the CPU, ratios taken within one run (issue 17
     speed in m/s then; after 1.5 s the 64 cubes still moved at 0.03 m/s, and their step cost 1.5x a settled
     one's, as hits and refreshes followed the motion), against the same bodies set apart above the box
     with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
-    ratios of the steps taken in turn);
+    ratios of the steps taken in turn); and the largest pile again with balls of the same width (the sphere
+    asset voxelised at resolution 3, 114 tets each) for cubes: they roll rather than rest, and a pile of
+    them keeps moving;
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
     contact) on the same settled pile and on the large meshes below, the fastest of 3 interleaved timings
     of each (target: at most 1x). Set apart, the bodies are left out of the search (far from the others,
@@ -20,6 +22,8 @@ Four measurements, all float64 on the CPU, ratios taken within one run (issue 17
     python -m benchmarks.contact --quick --out /tmp/contact
 """
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -33,6 +37,7 @@ COLUMNS = ["measurement", "bodies", "tets", "contacts", "mean_speed", "detection
 SIZE, PITCH, GAP, WALL = 0.08, 0.14, 0.006, 0.02      # m: cube edge, cube spacing, wall gap, wall thickness
 ROUNDS = 3                                            # interleaved timings of the sweep with and without contact
 SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+BALL_ASSET = Path(__file__).resolve().parent.parent / "assets" / "sphere.obj"
 
 
 def _walls(solver, k):
@@ -46,9 +51,19 @@ def _walls(solver, k):
             solver.box_mesh(size=(W - 2 * GAP, T, H), cells=(n, 1, k + 1), origin=(GAP, W, GAP))]
 
 
-def pile_scene(solver, k, apart):
-    """k^3 cubes in layers of k x k inside the box (apart=False) or spread out above it, 2 pitches apart
-    (apart=True); returns (mesh, number of wall vertices)."""
+def _ball(solver):
+    """The sphere asset voxelised at resolution 3 (114 tets, 56 vertices) and scaled to a ball of diameter
+    SIZE whose box's corner is at the origin, as a cube's."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", solver.MeshQualityWarning)
+        ball = solver.load_mesh(str(BALL_ASSET), resolution=3)
+    x = ball.vertices - ball.vertices.min(axis=0)
+    return solver.TetMesh(x * (SIZE / np.ptp(x, axis=0).max()), ball.tets)
+
+
+def pile_scene(solver, k, apart, balls=False):
+    """k^3 cubes (or balls of the same width) in layers of k x k inside the box (apart=False) or spread out
+    above it, 2 pitches apart (apart=True); returns (mesh, number of wall vertices)."""
     walls = _walls(solver, k)
     top = (k + 1) * 0.1 + 0.1
     if apart:
@@ -57,8 +72,12 @@ def pile_scene(solver, k, apart):
     else:
         origins = [(0.04 + PITCH * i + 0.01 * (layer % 2), 0.04 + PITCH * j, 0.01 + 0.1 * layer)
                    for layer in range(k) for i in range(k) for j in range(k)]
-    cubes = [solver.box_mesh(size=(SIZE,) * 3, cells=(2, 2, 2), origin=o) for o in origins]
-    return solver.merge_meshes(walls + cubes), sum(w.n_vertices for w in walls)
+    if balls:
+        ball = _ball(solver)
+        bodies = [solver.TetMesh(ball.vertices + np.asarray(o), ball.tets) for o in origins]
+    else:
+        bodies = [solver.box_mesh(size=(SIZE,) * 3, cells=(2, 2, 2), origin=o) for o in origins]
+    return solver.merge_meshes(walls + bodies), sum(w.n_vertices for w in walls)
 
 
 def _steps_in_turn(sims, steps):
@@ -97,21 +116,21 @@ def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
     return min(detect_s), min(sweep_s)
 
 
-def measure_pile(solver, k, settle, timed, min_seconds):
+def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
     contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
     mat = solver.Material(**SOFT)
-    mesh, n_walls = pile_scene(solver, k, apart=False)
+    mesh, n_walls = pile_scene(solver, k, apart=False, balls=balls)
     fixed = np.arange(n_walls)
     sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=20, contact=contact)
     sim.step(settle)
-    far, _ = pile_scene(solver, k, apart=True)
+    far, _ = pile_scene(solver, k, apart=True, balls=balls)
     apart = solver.Simulation(far, mat, dt=1 / 60, fixed=fixed, gravity=(0, 0, 0), iterations=20, contact=contact)
     apart.step()
     ((step_s, detections, refreshes), (apart_s, _, _)), ratio = _steps_in_turn((sim, apart), timed)
     contacts = sim.contact_count()
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
-    return dict(measurement="pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts, mean_speed=mean_speed,
+    return dict(measurement="ball pile" if balls else "pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts, mean_speed=mean_speed,
                 detections_per_step=detections, refreshes_per_step=refreshes, step_ms=step_s * 1e3,
                 apart_step_ms=apart_s * 1e3, step_ratio=ratio, detect_ms=detect_s * 1e3,
                 sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
@@ -163,12 +182,15 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    piles = [r for r in rows if r["measurement"] == "pile"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
-    a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], "o-", label="settled pile")
-    a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], "s--", label="same bodies apart")
-    for r in piles:
-        a.annotate(f"{r['bodies']} bodies", (r["contacts"], r["step_ms"]), fontsize=8)
+    for name, marks in (("pile", ("o-", "s--")), ("ball pile", ("^-", "v--"))):
+        piles = [r for r in rows if r["measurement"] == name]
+        shape = "cubes" if name == "pile" else "balls"
+        a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], marks[0], label=f"pile of {shape}")
+        a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], marks[1],
+               label=f"same {shape} apart")
+        for r in piles:
+            a.annotate(f"{r['bodies']} {shape}", (r["contacts"], r["step_ms"]), fontsize=8)
     a.set_xlabel("active contacts (pairs closer than the radius)")
     a.set_ylabel("ms per step (20 iterations)")
     a.set_title("Step time against active contacts")
@@ -203,6 +225,7 @@ def main(argv=None):
     rows = []
     for k in progress(piles, desc="piles", disable=args.no_progress):
         rows.append(measure_pile(solver, k, settle, steps, min_seconds))
+    rows.append(measure_pile(solver, piles[-1], settle, steps, min_seconds, balls=True))
     rows.append(measure_apart(solver, cells, min_seconds))
     rows.append(measure_touching(solver, cells, min_seconds))
     text = table(rows, COLUMNS, title="Contact cost (float64, CPU; ratios within this run)")

@@ -98,6 +98,9 @@ def test_contact_quick(tmp_path):
     assert [int(r["bodies"]) for r in piles] == [1, 8]
     assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
     assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
+    (balls,) = [r for r in data if r["measurement"] == "ball pile"]
+    assert int(balls["bodies"]) == 8 and int(balls["tets"]) > int(piles[1]["tets"]) and int(balls["contacts"]) > 0
+    piles.append(balls)
     (apart,) = [r for r in data if r["measurement"].startswith("apart")]
     assert int(apart["contacts"]) == 0, "bodies set apart have no pair closer than the radius"
     (touching,) = [r for r in data if r["measurement"].startswith("touching")]

@@ -51,7 +51,7 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
     wide = solver.Contact(stiffness=1e3, radius=0.004, query_radius=0.05, self_contact=False)
     q, g = contact.query_radius, contact.bound_relaxation
     refreshes, detections, hits = stage.refreshes, stage.detections, stage.bound_hits
-    active_seen = 0
+    active_seen = lower_bounds_seen = 0
     steps = 5
     for _ in range(steps):
         sim.begin_step()
@@ -65,6 +65,13 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             nearest = np.full(mesh.n_vertices, q - 2 * delta)
             np.minimum.at(nearest, vertices.ravel(), np.repeat(pair_geometry_np(kind, x_det[vertices])[0], 4))
             np.testing.assert_allclose(bound, g * nearest, rtol=1e-12, atol=0)
+            # which needs exact distances only below that cap: distance holds a lower bound of each pair's
+            # distance at x_det, exact where it is below the cap
+            held, exact = stage.distance.to_numpy()[:len(kind)], pair_geometry_np(kind, x_det[vertices])[0]
+            assert (held <= exact * (1 + 1e-12)).all()
+            below = held < q - 2 * delta
+            np.testing.assert_allclose(held[below], exact[below], rtol=1e-12, atol=0)
+            lower_bounds_seen += np.count_nonzero(held < exact * (1 - 1e-9))
             assert (np.linalg.norm(x - x_det, axis=1) <= bound * (1 + 1e-12)).all()
             # L's pairs closer than the radius at x are a fresh detection's
             fresh = find_pairs_np(x, surface, bodies, free, contact, excluded)
@@ -93,7 +100,7 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             w_kind, w_vertices, _, w_d = find_pairs_np(x_det, surface, bodies, free, wide, (none, none))
             assert (_reach(w_kind, w_vertices, bound) < w_d).all()
         sim.end_step()
-    assert active_seen > 0
+    assert active_seen > 0 and lower_bounds_seen > 0
     assert stage.bound_hits > hits and stage.refreshes - refreshes > steps     # refreshes after hits, not only at x_n
     assert stage.detections > detections
 

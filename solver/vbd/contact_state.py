@@ -15,6 +15,11 @@ can meet: two that were d apart close by at most 2 g d < d. No crossing by const
 al. 2025]), whatever the refreshes. The pairs of L are the only ones that can be closer than the radius
 r while 2 Delta < q - r; past that L may miss an active pair, and a full detection replaces the refresh.
 
+Only the pairs that can lower a bound need measuring: a pair whose vertices have moved s since x_det is
+at least its distance there less `pair_reach`(s) apart, and where that is at least the cap q - 2 Delta it
+changes no b_v. The refresh keeps that lower bound as the pair's distance instead (`refresh_bounds`):
+the bounds are the same, and far pairs go unmeasured.
+
 The same bounds tell which pairs can matter before the next refresh: a pair d_p apart at x_det whose
 vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays
 zero and the sweep skips it (`live`; in a resting pile most pairs of L are such).
@@ -45,7 +50,8 @@ class ContactStage:
 
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
     state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
-    refresh, bound (N,) the bounds it set, in m, distance (P,) the pairs' distances there, in m, and live
+    refresh, bound (N,) the bounds it set, in m, distance (P,) the pairs' distances there (lower bounds
+    where the exact one changes no bound: module docstring), in m, and live
     (P,) int32 its pairs that may come within the radius before the next one (module docstring), listed
     per vertex in live_incidence (4P,) up to live_end (N,) (`contact_sweep.refresh_bounds`).
     `bound_hits` counts the vertices clamped to their bound since construction, `detections` the full
@@ -90,6 +96,8 @@ class ContactStage:
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
             self.live_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
         contact_sweep.copy_row(state, row, self.x_full)
+        contact_sweep.copy_row(state, row, self.x_det)
+        contact_sweep.copy_prefix(self.detector.distance, n_pairs, self.distance)   # exact at x_det
         self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
         self._listed = False
         self.detections += 1
@@ -110,7 +118,7 @@ class ContactStage:
         d, c = self.detector, self.contact
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
-                                             self.distance, self.x_det, self.bound, self.live,
+                                             self.distance, self.x_det, self._moved, self.bound, self.live,
                                              self.live_incidence, self.live_end, self._free, self.dtype,
                                              self._serial)
         self._since_check = 0

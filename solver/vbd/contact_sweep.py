@@ -14,17 +14,17 @@ where x_det are the positions at which the bounds b were last set (`refresh_boun
 bounds, g < 1/2, no two primitives can cross before the next refresh; `contact_state.py`). One launch per
 iteration, and with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
-Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,)
-int32 `PairKind`; pair (P,) 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs
-of each vertex; live_incidence (4P,) and live_end (N,): the live pairs of vertex i (those that may come
-within the radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_offsets[i]:
-live_end[i]], in the order of incidence, and the sweep walks only those; distance (P,) m, each pair's
-distance at x_det (a live pair whose vertices have not moved far enough since is skipped too:
-`may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since x_det (`measure_moves`);
-bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair
-closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs
-are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
-friction_speed m/s: the `Contact`.
+Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,) int32
+`PairKind`; pair (P,) 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each
+vertex; live_incidence (4P,) and live_end (N,): the live pairs of vertex i (those that may come within the
+radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_offsets[i]:live_end[i]], in
+the order of incidence, and the sweep walks only those; distance (P,) m, each pair's distance at x_det, or a
+lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have not moved far
+enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since
+x_det (`measure_moves`); bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every
+vertex with a pair closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c
+that have pairs are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c
+N/m, r m, mu, friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
@@ -51,8 +51,9 @@ def pair_reach(kind, s):
 
 @ti.func
 def may_be_within(distance: ti.template(), kind, p, s, r, slack):
-    """Whether pair p may be closer than r + slack at the current x: it was distance[p] apart at x_det, and
-    its vertices have moved s (4,) m since, so it has come at most `pair_reach` closer. No distance needed."""
+    """Whether pair p may be closer than r + slack at the current x: it was at least distance[p] apart at
+    x_det, and its vertices have moved s (4,) m since, so it has come at most `pair_reach` closer. No
+    distance needed."""
     return distance[p] - pair_reach(kind, s) < r + slack
 
 
@@ -221,16 +222,20 @@ def list_jacobi_vertices(color_order: ti.types.ndarray(), color_starts: ti.types
 def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray(), kind: ti.types.ndarray(),
                    pair: ti.types.ndarray(), n_pairs: ti.i32, incidence_offsets: ti.types.ndarray(),
                    incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
-                   x_det: ti.types.ndarray(), bound: ti.types.ndarray(), live: ti.types.ndarray(),
-                   live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(), free: ti.types.ndarray(),
-                   dtype: ti.template(), serial: ti.template()) -> ti.f64:
+                   x_det: ti.types.ndarray(), moved: ti.types.ndarray(), bound: ti.types.ndarray(),
+                   live: ti.types.ndarray(), live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(),
+                   free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.f64:
     """New bounds at x = state[row] from the first n_pairs pairs, found by the last full detection at
-    x_full (N,) (`contact_state.py`); returns Delta in m. In order:
-      Delta = max_i |x_i - x_full,i| over every vertex (fixed and kinematic ones included);
-      distance[p] = d_p at x, for every pair;
-      b_i = g min(q - 2 Delta, d_p of each pair p of i) and x_det,i = x_i, for every vertex;
-      live[p] = 1 unless d_p >= r + (largest b of its first primitive) + (largest b of its second), b
-      counted 0 at the vertices the sweep does not move (free (N,) int32 is 0 there): until the next
+    x_full (N,) (`contact_state.py`); returns Delta in m. distance (P,) holds on entry a lower bound of each
+    pair's distance at x_det (exact below the cap q - 2 Delta), and on return one at x. In order:
+      Delta = max_i |x_i - x_full,i| over every vertex (fixed and kinematic ones included), and
+      moved[i] = |x_i - x_det,i| (scratch);
+      for every pair, its vertices moved s (4,) since x_det, so it is at least
+      distance[p] - pair_reach(s) apart at x: where that is below the cap q - 2 Delta, distance[p] = d_p,
+      the exact distance at x; else the lower bound is kept, as it changes no bound (nor when s = 0);
+      b_i = g min(q - 2 Delta, distance[p] of each pair p of i) and x_det,i = x_i, for every vertex;
+      live[p] = 1 unless distance[p] >= r + (largest b of its first primitive) + (largest b of its second),
+      b counted 0 at the vertices the sweep does not move (free (N,) int32 is 0 there): until the next
       refresh such a pair stays beyond the radius, and the sweep skips it;
       live_incidence[incidence_offsets[i]:live_end[i]] = the live pairs of incidence[incidence_offsets[i]:
       incidence_offsets[i + 1]], in order, for every vertex (the sweep walks only those)."""
@@ -238,15 +243,22 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         ti.atomic_max(delta, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
+        moved[i] = (state[row, i] - x_det[i]).norm()
+    cap = ti.cast(q - 2 * delta, dtype)
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
         v = pair[p]
-        d, w, n = pair_geometry(kind[p], state[row, v[0]], state[row, v[1]], state[row, v[2]], state[row, v[3]],
-                                dtype)
-        distance[p] = d
+        reach = pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))]))
+        if reach > 0:
+            if distance[p] - reach < cap:
+                d, w, n = pair_geometry(kind[p], state[row, v[0]], state[row, v[1]], state[row, v[2]],
+                                        state[row, v[3]], dtype)
+                distance[p] = d
+            else:
+                distance[p] -= reach
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
-        nearest = ti.cast(q - 2 * delta, dtype)
+        nearest = cap
         for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
             nearest = ti.min(nearest, distance[incidence[s]])
         bound[i] = ti.cast(g * nearest, dtype)
@@ -320,6 +332,13 @@ def copy_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
     """out[i] = state[row, i]."""
     for i in range(out.shape[0]):
         out[i] = state[row, i]
+
+
+@ti.kernel
+def copy_prefix(source: ti.types.ndarray(), n: ti.i32, out: ti.types.ndarray()):
+    """out[k] = source[k] for k < n."""
+    for k in range(n):
+        out[k] = source[k]
 
 
 @ti.kernel
