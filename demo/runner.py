@@ -15,8 +15,9 @@ from .errors import DemoError
 from .scenes import PROBE_MOVED, Advance, ColorBy, Sweep
 
 # The one Newton policy of the demo, that of Simulation(method="newton"), which advances the trajectory
-# ghost: stop once the step is below 1e-8 of the body size, at most 50 iterations. x*, the reference of
-# one VBD step, is solved with the same numbers from a warm start (the VBD result or y).
+# ghost: stop once the step is below 1e-8 of the body size, at most 50 iterations (`newton_cap`: twice as
+# many with contact). x*, the reference of one VBD step, is solved with the same numbers from a warm start
+# (the VBD result or y).
 NEWTON_TOLERANCE = 1e-8
 NEWTON_ITERATIONS = 50
 DRIFT_SHOWN = 0.01      # m: a sideways drift of the centre of mass below this is not labelled
@@ -128,6 +129,11 @@ class PanelSim:
         self.in_step = False
         self.failure = None         # why this panel stopped (it diverged), or None while it runs
         self.step_seconds = []      # wall time of every solver step since the reset (s)
+
+    @property
+    def newton_iterations(self) -> int:
+        """The cap of this panel's Newton solves (`newton_cap`)."""
+        return newton_cap(self.panel.contact is not None)
 
     @property
     def settings(self):
@@ -300,7 +306,7 @@ class PanelSim:
         """Start the reference trajectory from the current state (first use, or after a reset)."""
         if self.reference is None:
             self.reference = solver.Simulation(**{**self._settings, "method": solver.Method.NEWTON,
-                                                  "iterations": NEWTON_ITERATIONS})
+                                                  "iterations": self.newton_iterations})
         if not self.reference_synced:
             self.reference.reset()
             self.reference.set_positions(self.sim.positions)
@@ -314,7 +320,7 @@ class PanelSim:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)    # an unconverged solve is said in the label
             self.reference.step()
-        self.ghost_converged = self.reference.last_iterations < NEWTON_ITERATIONS
+        self.ghost_converged = self.reference.last_iterations < self.newton_iterations
         return self.reference.positions
 
     def _open_step(self):
@@ -452,12 +458,12 @@ class PanelSim:
             lines.append(f"off the ghost by {_cm(gap)} cm = {fraction:.0%} of its length")
         if self.error is not None:
             unsure = ("" if self.error_converged
-                      else f" (x* approximate: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap)")
+                      else f" (x* approximate: Newton stopped at its {self.newton_iterations}-iteration cap)")
             # three decimals read well down to 0.01; below, where only the remedies get, the exponent
             shown = f"{self.error:.3f}" if self.error >= 0.01 else f"{self.error:.1e}"
             lines.append(f"relative error {shown}{unsure}")
         if self.ghost is not None and self.ghost_mode is GhostMode.TRAJECTORY and not self.ghost_converged:
-            lines.append(f"ghost approximate this step: Newton stopped at its {NEWTON_ITERATIONS}-iteration cap")
+            lines.append(f"ghost approximate this step: Newton stopped at its {self.newton_iterations}-iteration cap")
         if self.probe is not None:
             lines.append(self._probe_line())
         if self.panel.show_inverted:
@@ -599,6 +605,13 @@ class SceneRunner:
         return self.states()
 
 
+def newton_cap(contact: bool) -> int:
+    """The demo Newton's iteration cap: NEWTON_ITERATIONS, twice that with contact, where a Newton step is
+    cut short once one vertex would pass its bound (the head_on balls take 10-60 iterations a step, where
+    a body without contact takes under 10)."""
+    return 2 * NEWTON_ITERATIONS if contact else NEWTON_ITERATIONS
+
+
 def _newton(problem, guess):
     """(x*, converged): the minimiser of the step's G by the demo's Newton policy, started from whichever
     of the inertial prediction y and ``guess`` (the VBD result) is lower in G: a VBD result that has
@@ -610,7 +623,8 @@ def _newton(problem, guess):
     start = guess if problem.contact is not None or problem.energy(guess) < problem.energy(y) else y
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)    # reported in the label instead
-        result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE, max_iterations=NEWTON_ITERATIONS)
+        result = solver.fast_newton_solve(problem, start, tolerance=NEWTON_TOLERANCE,
+                                          max_iterations=newton_cap(problem.contact is not None))
     return result.x, result.converged
 
 

@@ -75,6 +75,8 @@ class ContactStage:
         self.live_end = ti.ndarray(ti.i32, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free.astype(np.int32))
+        self._color = ti.ndarray(ti.i32, n)             # each free vertex's colour (set with the jacobi lists)
+        self._color.from_numpy(np.full(n, -1, dtype=np.int32))
         self._target = ti.Vector.ndarray(3, dtype, n)
         self.touched = ti.ndarray(ti.i32, n)
         self._serial = serial_sweep(mesh.n_tets, running_on_cpu())
@@ -157,11 +159,12 @@ class ContactStage:
                 self._jacobi = ti.ndarray(ti.i32, color_order.shape[0])
                 self._jacobi_count = ti.ndarray(ti.i32, n_colors)
             contact_sweep.list_jacobi_vertices(color_order, color_starts, d.incidence_offsets, self._jacobi,
-                                               self._jacobi_count)
+                                               self._jacobi_count, self._color)
             self._listed = True
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
                                                    d.incidence_offsets, self.live_incidence, self.live_end,
-                                                   self.x_det, self._moved, self.bound, self._target, self.touched,
+                                                   self.x_det, self._moved, self.bound, self._color, self._target,
+                                                   self.touched,
                                                    self._jacobi, self._jacobi_count, c.stiffness, c.radius, c.friction,
                                                    c.friction_speed, unrolled_colors(n_colors, self._serial), dtype,
                                                    self._serial, d.n_pairs > 0)
@@ -187,7 +190,8 @@ class ContactStage:
         d, c = self.detector, self.contact
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
                                                              d.incidence_offsets, self.live_incidence, self.live_end,
-                                                             self.x_det, self._moved, params, f, H, c.stiffness,
+                                                             self.x_det, self._moved, self._color, params, f, H,
+                                                             c.stiffness,
                                                              c.radius, c.friction, c.friction_speed, dtype))
 
     def distances(self, state) -> np.ndarray:

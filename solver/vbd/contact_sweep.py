@@ -6,9 +6,22 @@ Sec. 3.9). A vertex without pairs is read by no other vertex of its colour and w
 For the vertex i in colour slot k:
 
     f_i, H_i  = inertia + elasticity + damping + ground        (`vertex_solve.force_hessian`)
-              + sum over i's pairs p: -b'(d_p) w_ip n_p,  b''(d_p) w_ip^2 n_p n_p^T   (`contact.py`)
-              + lagged friction of each pair                     (`contact.contact_friction`)
+              + sum over i's pairs p: -b'(d_p) w_ip n_p,  J_ip b''(d_p) w_ip^2 n_p n_p^T   (`contact.py`)
+              + lagged friction of each pair, its block times J_ip (`contact.contact_friction`)
     x_i      <- x_i + H_i^-1 f_i, then clamped to |x_i - x_det,i| <= b_i
+
+J_ip = 2 where a vertex j across pair p has i's colour (solved in the same pass, from the old x_i), else 1.
+Why: two partners solved at once each take the step that would close the pair's gap error if the other
+stood still, so together they close it twice and land as far beyond as they started short: Jacobi's
+zero-decrease mode, which leaves a pile that should rest jittering, its vertices hitting their bounds at
+every iteration. A Jacobi pass over a colour lowers the quadratic model of G where 2 D - A is positive
+definite (D: the blocks the sweep solves, A: the model's Hessian over the colour's vertices). The pair
+puts b'' n n^T times [[w_i^2, w_i w_j], [w_i w_j, w_j^2]] into A and J_ip b'' w_i^2 n n^T, J_jp b'' w_j^2 n n^T
+into D, so into 2 D - A b'' n n^T times [[(2J - 1) w_i^2, -w_i w_j], [-w_i w_j, (2J - 1) w_j^2]]: singular
+for J = 1 (the mode that closes the gap from both sides), positive definite for J = 2. Only the step
+changes, never f_i: a converged sweep is the same minimiser of G. The other vertices of i's own side
+share an edge with i, so never its colour, and a fixed or kinematic vertex is solved by no pass (its
+colour reads -1).
 
 where x_det are the positions at which the bounds b were last set (`refresh_bounds`: OGC's conservative
 bounds, g < 1/2, no two primitives can cross before the next refresh; `contact_state.py`). One launch per
@@ -21,7 +34,8 @@ radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_o
 the order of incidence, and the sweep walks only those; distance (P,) m, each pair's distance at x_det, or a
 lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have not moved far
 enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since
-x_det (`measure_moves`); bound (N,) m; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every
+x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1 at the others;
+target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every
 vertex with a pair closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c
 that have pairs are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c
 N/m, r m, mu, friction_speed m/s: the `Contact`.
@@ -84,12 +98,24 @@ def pair_slip(state: ti.template(), v, w, dtype: ti.template()):
 
 
 @ti.func
+def partner_in_pass(color: ti.template(), v, i):
+    """Whether a vertex of the pair v (4,) other than i has i's colour (module docstring: J_ip = 2)."""
+    same = False
+    for j in ti.static(range(4)):
+        if v[j] != i and color[v[j]] == color[i]:
+            same = True
+    return same
+
+
+@ti.func
 def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
                              incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                             moved: ti.template(), distance: ti.template(), k_c, r, mu, eps_u, dtype: ti.template()):
+                             moved: ti.template(), distance: ti.template(), color: ti.template(), k_c, r, mu, eps_u,
+                             jacobi: ti.template(), dtype: ti.template()):
     """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x;
     a pair that cannot be within r (`may_be_within`, from the moves `moved` (N,) since x_det) is skipped
-    before its distance is computed."""
+    before its distance is computed. jacobi: count the blocks of pairs with a partner in i's colour
+    (`color` (N,)) twice, as the sweep solves them (module docstring); else each block once, G's."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
@@ -105,13 +131,16 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
                 if v[j] == i:
                     w_i = w[j]
             f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
-            f += ti.cast(f_c, dtype)
-            H += ti.cast(H_c, dtype)
             if mu > 0:
                 db, d2b = barrier_derivatives(d, k_c, r)
                 f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu, eps_u, dtype)
-                f += ti.cast(f_f, dtype)
-                H += ti.cast(H_f, dtype)
+                f_c += f_f
+                H_c += H_f
+            if ti.static(jacobi):
+                if partner_in_pass(color, v, i):
+                    H_c *= 2
+            f += ti.cast(f_c, dtype)
+            H += ti.cast(H_c, dtype)
             active += 1
     return f, H, active
 
@@ -121,15 +150,16 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
                          offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
                          kind: ti.template(), pair: ti.template(), distance: ti.template(),
                          incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                         x_det: ti.template(), moved: ti.template(), bound: ti.template(), target: ti.template(),
-                         touched: ti.template(), k, kc, rr, mu_c, friction_speed, dtype: ti.template()):
+                         x_det: ti.template(), moved: ti.template(), bound: ti.template(), color: ti.template(),
+                         target: ti.template(), touched: ti.template(), k, kc, rr, mu_c, friction_speed,
+                         dtype: ti.template()):
     """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
     when i has pairs; returns whether it hit its bound. moved (N,): `measure_moves`."""
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                moved, distance, kc, rr, mu_c, eps_u, dtype)
+                                                moved, distance, color, kc, rr, mu_c, eps_u, True, dtype)
     f += f_c
     H += H_c
     if active > 0:
@@ -169,7 +199,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                           incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
                           live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
-                          bound: ti.types.ndarray(), target: ti.types.ndarray(), touched: ti.types.ndarray(),
+                          bound: ti.types.ndarray(), color: ti.types.ndarray(), target: ti.types.ndarray(),
+                          touched: ti.types.ndarray(),
                           jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
                           dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
@@ -185,8 +216,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in range(color_starts.shape[0] - 1):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, target,
-                                        touched, k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, color,
+                                        target, touched, k, kc, rr, mu_c, friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
@@ -194,8 +225,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, target,
-                                        touched, k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, color,
+                                        target, touched, k, kc, rr, mu_c, friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
                 apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
@@ -205,13 +236,14 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
 @ti.kernel
 def list_jacobi_vertices(color_order: ti.types.ndarray(), color_starts: ti.types.ndarray(),
                          incidence_offsets: ti.types.ndarray(), jacobi: ti.types.ndarray(),
-                         jacobi_count: ti.types.ndarray()):
+                         jacobi_count: ti.types.ndarray(), color: ti.types.ndarray()):
     """jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]]: the vertices of colour c that have a pair,
-    in slot order (module docstring)."""
+    in slot order, and color[i] = c for every vertex i of colour c (module docstring)."""
     for c in range(jacobi_count.shape[0]):
         n = 0
         for k in range(color_starts[c], color_starts[c + 1]):
             i = color_order[k]
+            color[i] = c
             if incidence_offsets[i + 1] > incidence_offsets[i]:
                 jacobi[color_starts[c] + n] = i
                 n += 1
@@ -365,20 +397,21 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
                               pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                               incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
                               live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
-                              params: ti.types.ndarray(), f_out: ti.types.ndarray(), H_out: ti.types.ndarray(),
-                              k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64,
+                              color: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
+                              H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64,
                               dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
-    (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`."""
+    (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`. The blocks are G's, each
+    pair's once: the sweep's Jacobi factor (module docstring) is not part of G, and color (N,) goes unread."""
     result = ti.cast(0.0, ti.f64)
     measure_moves(state, x_det, moved, False)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
         f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                    moved, distance, ti.cast(k_c, dtype), ti.cast(r, dtype),
-                                                    ti.cast(mu, dtype), eps_u, dtype)
+                                                    moved, distance, color, ti.cast(k_c, dtype), ti.cast(r, dtype),
+                                                    ti.cast(mu, dtype), eps_u, False, dtype)
         f_out[i] += f_c
         H_out[i] += H_c
         ti.atomic_max(result, ti.cast(f_out[i].norm(), ti.f64))
