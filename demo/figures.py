@@ -537,7 +537,7 @@ CONTACT_FRAMES = {"pile": 30, "head_on": 13}     # the pile half a second in; th
 
 def section_contact(out, full, size):
     """Chapter 8: one frame of the pile and one of the head-on collision, with their contact counts, closest
-    gaps as numbers for the notes."""
+    gaps and (head-on) the step's relative error against the converged step, as numbers for the notes."""
     from . import scenes
 
     numbers = {}
@@ -546,6 +546,8 @@ def section_contact(out, full, size):
         contact = state.lines[-1].split("; ")[0]
         numbers[f"contact.{name}.time"] = f"{(frame + 1) * scenes.get(name).dt:.2f}"
         numbers[f"contact.{name}.label"] = contact
+        if state.error is not None:
+            numbers[f"contact.{name}.error"] = f"{state.error:.3f}"
     scene = scenes.get("head_on")
     mesh = scene.panels[0].mesh.build()
     numbers["contact.head_on.tets"] = str(len(mesh.tets))

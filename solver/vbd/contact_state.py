@@ -164,10 +164,10 @@ class ContactStage:
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
                                                    d.incidence_offsets, self.live_incidence, self.live_end,
                                                    self.x_det, self._moved, self.bound, self._color, self._target,
-                                                   self.touched,
-                                                   self._jacobi, self._jacobi_count, c.stiffness, c.radius, c.friction,
-                                                   c.friction_speed, unrolled_colors(n_colors, self._serial), dtype,
-                                                   self._serial, d.n_pairs > 0)
+                                                   self.touched, self._jacobi, self._jacobi_count, c.stiffness,
+                                                   c.radius, c.friction, c.friction_speed,
+                                                   unrolled_colors(n_colors, self._serial), dtype, self._serial,
+                                                   d.n_pairs > 0)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)
@@ -191,8 +191,8 @@ class ContactStage:
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
                                                              d.incidence_offsets, self.live_incidence, self.live_end,
                                                              self.x_det, self._moved, self._color, params, f, H,
-                                                             c.stiffness,
-                                                             c.radius, c.friction, c.friction_speed, dtype))
+                                                             c.stiffness, c.radius, c.friction, c.friction_speed,
+                                                             dtype))
 
     def distances(self, state) -> np.ndarray:
         """(P,) distances in m of the pairs under query_radius at the current positions."""

@@ -34,11 +34,11 @@ radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_o
 the order of incidence, and the sweep walks only those; distance (P,) m, each pair's distance at x_det, or a
 lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have not moved far
 enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since
-x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1 at the others;
-target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every
-vertex with a pair closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c
-that have pairs are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c
-N/m, r m, mu, friction_speed m/s: the `Contact`.
+x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1 at the others; target
+(N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair closer than the radius;
+jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs are
+jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
+friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
 loop costs tens of us even when empty) and is the plain sweep plus the clamp.
