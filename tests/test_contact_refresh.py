@@ -2,7 +2,8 @@
 bounds from the pairs L of the last detection instead of detecting again. Judged in numpy at every
 iteration of two cubes driven into each other: the bounds follow the refresh's formula, the pairs of L
 closer than the radius are exactly those a fresh detection finds, the pairs the sweep skips are beyond
-the radius (each vertex walks exactly its live pairs), and no bound lets two primitives meet. The sweep's
+the radius (each vertex walks exactly its live pairs, or only the near ones while no vertex has moved
+past the horizon), and no bound lets two primitives meet. The sweep's
 cheaper skip, by how far the vertices moved since the refresh (`contact_sweep.may_be_within`), is checked
 against exact distances."""
 import numpy as np
@@ -12,6 +13,7 @@ import solver
 from solver._ti import ti
 from solver.physics.contact import PairKind, pair_geometry_np
 from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
+from solver.vbd import contact_state
 from solver.vbd.contact_sweep import may_be_within, moves_since
 from solver.vbd.layout import STATE_ROWS, X
 
@@ -35,10 +37,12 @@ def _reach(kind, vertices, bound):
     return side_a + side_b
 
 
-def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
+def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch(monkeypatch):
     a, b = (solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=o) for o in ((0, 0, 0), (0.112, 0.02, 0.01)))
     mesh = solver.merge_meshes([a, b])
     contact = solver.Contact(stiffness=1e3, radius=0.004, detection_interval=3)
+    horizon = 0.05      # x radius: wide enough that these fast cubes also have iterations that walk only the near pairs
+    monkeypatch.setattr(contact_state, "NEAR_HORIZON", horizon)
     sim = solver.Simulation(mesh, SOFT, dt=1 / 240, gravity=(0, 0, 0), iterations=8, contact=contact)
     v = np.zeros((mesh.n_vertices, 3))
     v[:a.n_vertices, 0], v[a.n_vertices:, 0] = 1.5, -1.5
@@ -51,7 +55,7 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
     wide = solver.Contact(stiffness=1e3, radius=0.004, query_radius=0.05, self_contact=False)
     q, g = contact.query_radius, contact.bound_relaxation
     refreshes, detections, hits = stage.refreshes, stage.detections, stage.bound_hits
-    active_seen = lower_bounds_seen = 0
+    active_seen = lower_bounds_seen = near_only_seen = far_walked_seen = 0
     steps = 5
     for _ in range(steps):
         sim.begin_step()
@@ -81,17 +85,27 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             # the pairs the sweep skips until the next refresh are beyond the radius
             live = stage.live.to_numpy()[:len(d)]
             assert (d[live == 0] >= contact.radius).all()
-            # and it walks, per vertex, the live pairs of its incidence list in their order
+            # and it walks, per vertex, the live pairs of its incidence list in their order, or only those
+            # closer than r + 2 horizon at x_det (near)
             offsets, incidence = stage.detector.vertex_pairs()
             live_incidence, live_end = stage.live_incidence.to_numpy(), stage.live_end.to_numpy()
+            near_incidence, near_end = stage.near_incidence.to_numpy(), stage.near_end.to_numpy()
+            near = held < contact.radius + 2 * horizon * contact.radius
             for i in range(mesh.n_vertices):
                 listed = incidence[offsets[i]:offsets[i + 1]]
                 np.testing.assert_array_equal(live_incidence[offsets[i]:live_end[i]], listed[live[listed] == 1])
+                np.testing.assert_array_equal(near_incidence[offsets[i]:near_end[i]],
+                                              listed[(live[listed] == 1) & near[listed]])
             # the moves since x_det it reads for those pairs' vertices are the moves to x (`measure_moves`,
             # then `apply_buffered` after each colour)
             paired = np.diff(offsets) > 0
-            np.testing.assert_allclose(stage._moved.to_numpy()[paired], np.linalg.norm(x - x_det, axis=1)[paired],
-                                       rtol=1e-12, atol=1e-18)
+            moves = np.linalg.norm(x - x_det, axis=1)[paired]
+            np.testing.assert_allclose(stage._moved.to_numpy()[paired], moves, rtol=1e-12, atol=1e-18)
+            # and it walks only the near ones while no vertex with pairs has moved past the horizon
+            crossed = stage._crossed.to_numpy()[0]
+            assert crossed == 1 or moves.max() <= horizon * contact.radius
+            near_only_seen += int(crossed == 0 and (near_end < live_end).any())
+            far_walked_seen += int(crossed == 1)
             active_seen = max(active_seen, len(known))
             # within their bounds no two primitives can meet: the pairs of L, and every pair between the
             # bodies up to 5 cm apart at x_det
@@ -100,7 +114,7 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch():
             w_kind, w_vertices, _, w_d = find_pairs_np(x_det, surface, bodies, free, wide, (none, none))
             assert (_reach(w_kind, w_vertices, bound) < w_d).all()
         sim.end_step()
-    assert active_seen > 0 and lower_bounds_seen > 0
+    assert active_seen > 0 and lower_bounds_seen > 0 and near_only_seen > 0 and far_walked_seen > 0
     assert stage.bound_hits > hits and stage.refreshes - refreshes > steps     # refreshes after hits, not only at x_n
     assert stage.detections > detections
 
@@ -128,6 +142,34 @@ def test_the_serial_and_parallel_contact_sweeps_give_the_same_steps():
     assert count > 0 and hits > 0 and not np.allclose(x_parallel[a.n_vertices:], mesh.vertices[a.n_vertices:])
     np.testing.assert_array_equal(x_parallel, x_serial)
     assert runs[0][1:] == runs[1][1:]
+
+
+def test_walking_only_the_near_pairs_changes_no_step(monkeypatch):
+    """Two cubes 7 mm apart settling on a fixed slab: the sweep walks only the near live pairs (closer than
+    r + 2 horizon) while no vertex has moved farther than the horizon, and the steps are bit for bit those
+    of a sweep that walks every live pair (horizon 0: every move crosses it)."""
+    slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
+    cubes = [solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(x, 0, 0.004)) for x in (0, 0.107)]
+    mesh = solver.merge_meshes([slab, *cubes])
+    contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
+    runs = []
+    for horizon in (contact_state.NEAR_HORIZON, 0.0):
+        monkeypatch.setattr(contact_state, "NEAR_HORIZON", horizon)
+        sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=np.arange(slab.n_vertices), iterations=10,
+                                contact=contact)
+        stage = sim._contact_stage
+        near_only = 0
+        for _ in range(40):
+            sim.begin_step()
+            for _ in range(10):
+                sim.run_iterations(1)
+                live_end, near_end = stage.live_end.to_numpy(), stage.near_end.to_numpy()
+                near_only += int(stage._crossed.to_numpy()[0] == 0 and (near_end < live_end).any())
+            sim.end_step()
+        runs.append((sim.positions, near_only, sim.contact_count()))
+    (x_near, near_only, count), (x_every, none, _) = runs
+    assert count > 0 and near_only > 0 and none == 0
+    np.testing.assert_array_equal(x_near, x_every)
 
 
 @ti.kernel

@@ -24,11 +24,15 @@ The same bounds tell which pairs can matter before the next refresh: a pair d_p 
 vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays
 zero and the sweep skips it (`live`; in a resting pile most pairs of L are such).
 
+The sweep walks only the live pairs closer than r + 2 horizon (near; horizon = NEAR_HORIZON r) until a
+vertex has moved farther than the horizon since x_det, and all of them after: until then the others are
+at least r apart. In a resting pile the vertices move microns per step, and most live pairs are not near.
+
 When: a full detection whenever positions move outside that margin (checked at every refresh, and every
 `Contact.detection_interval` iterations otherwise); a refresh at the start of every step (at x_n; the
 initial guess is then clamped to the bounds), again before its first iteration (at the clamped guess),
 and before any iteration that follows one in which a vertex hit its bound (bounds may cost refreshes,
-never progress).
+never progress). The refresh at x_n only sets bounds: the one at the guess lists the live pairs.
 """
 import numpy as np
 from scipy.spatial import cKDTree
@@ -43,6 +47,7 @@ from .layout import X, X_N
 from .vertex_solve import serial_sweep, unrolled_colors
 
 COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
+NEAR_HORIZON = 0.02         # x radius: the sweep's horizon (module docstring); measured 0.01-0.2 in a resting pile
 
 
 class ContactStage:
@@ -51,9 +56,10 @@ class ContactStage:
     mesh: the `TetMesh` (every body); free: (N,) bool, the vertices VBD moves; dtype: float type of the
     state. x_full (N,) holds the positions of the last full detection, x_det (N,) those of the last
     refresh, bound (N,) the bounds it set, in m, distance (P,) the pairs' distances there (lower bounds
-    where the exact one changes no bound: module docstring), in m, and live
-    (P,) int32 its pairs that may come within the radius before the next one (module docstring), listed
-    per vertex in live_incidence (4P,) up to live_end (N,) (`contact_sweep.refresh_bounds`).
+    where the exact one changes no bound: module docstring), in m, and live (P,) int32 its pairs that may
+    come within the radius before the next one (module docstring), listed per vertex in live_incidence
+    (4P,) up to live_end (N,), the near ones among them in near_incidence (4P,) up to near_end (N,)
+    (`contact_sweep.refresh_bounds`).
     `bound_hits` counts the vertices clamped to their bound since construction, `detections` the full
     detections, `refreshes` the refreshes.
     """
@@ -73,6 +79,9 @@ class ContactStage:
         self.live = ti.ndarray(ti.i32, 64)
         self.live_incidence = ti.ndarray(ti.i32, 4 * 64)
         self.live_end = ti.ndarray(ti.i32, n)
+        self.near_incidence = ti.ndarray(ti.i32, 4 * 64)
+        self.near_end = ti.ndarray(ti.i32, n)
+        self._crossed = ti.ndarray(ti.i32, 1)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free.astype(np.int32))
         self._color = ti.ndarray(ti.i32, n)             # each free vertex's colour (set with the jacobi lists)
@@ -97,6 +106,7 @@ class ContactStage:
             self.distance = ti.ndarray(self.dtype, 2 * n_pairs)
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
             self.live_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
+            self.near_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
         contact_sweep.copy_row(state, row, self.x_full)
         contact_sweep.copy_row(state, row, self.x_det)
         contact_sweep.copy_prefix(self.detector.distance, n_pairs, self.distance)   # exact at x_det
@@ -105,24 +115,26 @@ class ContactStage:
         self.detections += 1
         return n_pairs
 
-    def refresh(self, state, row: int = X) -> None:
+    def refresh(self, state, row: int = X, lists: bool = True) -> None:
         """New bounds at state[row] from the pairs of the last full detection, or a full detection there
-        when a pair it missed may have come closer than the radius (module docstring)."""
+        when a pair it missed may have come closer than the radius (module docstring). lists: also list
+        the live pairs (not needed where another refresh follows before the next iteration)."""
         c = self.contact
-        if 2 * self._set_bounds(state, row) >= c.query_radius - c.radius:
+        if 2 * self._set_bounds(state, row, lists) >= c.query_radius - c.radius:
             self.detect(state, row)
         else:
             self.refreshes += 1
 
-    def _set_bounds(self, state, row: int) -> float:
-        """x_det = state[row], the bounds there and which pairs are live (`contact_sweep.refresh_bounds`);
-        returns Delta in m."""
+    def _set_bounds(self, state, row: int, lists: bool = True) -> float:
+        """x_det = state[row], the bounds there and (with lists) which pairs are live
+        (`contact_sweep.refresh_bounds`); returns Delta in m."""
         d, c = self.detector, self.contact
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
                                              self.distance, self.x_det, self._moved, self.bound, self.live,
-                                             self.live_incidence, self.live_end, self._free, self.dtype,
-                                             self._serial)
+                                             self.live_incidence, self.live_end, self.near_incidence, self.near_end,
+                                             NEAR_HORIZON * c.radius, self._free, self.dtype, self._serial,
+                                             lists)
         self._since_check = 0
         self._due = False
         return delta
@@ -135,10 +147,11 @@ class ContactStage:
 
     def begin_step(self, state, color_order) -> None:
         """Refresh the bounds at x_n and clamp the initial guess to them, then have the first iteration
-        refresh at the clamped guess, where kinematic vertices already sit at their targets; no vertex has
-        touched yet. Called after the guess is set, so the row X_N holds x_n and X the guess."""
+        refresh at the clamped guess, where kinematic vertices already sit at their targets (so the first
+        refresh lists no live pairs); no vertex has touched yet. Called after the guess is set, so the row
+        X_N holds x_n and X the guess."""
         contact_sweep.clear(self.touched)
-        self.refresh(state, X_N)
+        self.refresh(state, X_N, lists=False)
         self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
         self._due = True
 
@@ -163,7 +176,9 @@ class ContactStage:
             self._listed = True
         hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
                                                    d.incidence_offsets, self.live_incidence, self.live_end,
-                                                   self.x_det, self._moved, self.bound, self._color, self._target,
+                                                   self.near_incidence, self.near_end, self.x_det, self._moved,
+                                                   NEAR_HORIZON * c.radius, self._crossed, self.bound, self._color,
+                                                   self._target,
                                                    self.touched, self._jacobi, self._jacobi_count, c.stiffness,
                                                    c.radius, c.friction, c.friction_speed,
                                                    unrolled_colors(n_colors, self._serial), dtype, self._serial,
@@ -190,7 +205,8 @@ class ContactStage:
         d, c = self.detector, self.contact
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
                                                              d.incidence_offsets, self.live_incidence, self.live_end,
-                                                             self.x_det, self._moved, self._color, params, f, H,
+                                                             self.near_incidence, self.near_end, self.x_det,
+                                                             self._moved, self._crossed, self._color, params, f, H,
                                                              c.stiffness, c.radius, c.friction, c.friction_speed,
                                                              dtype))
 

@@ -29,9 +29,11 @@ iteration, and with Chebyshev acceleration one more (`chebyshev_contact_step`).
 
 Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in colour order): kind (P,) int32
 `PairKind`; pair (P,) 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each
-vertex; live_incidence (4P,) and live_end (N,): the live pairs of vertex i (those that may come within the
-radius before the next refresh, `refresh_bounds`) are live_incidence[incidence_offsets[i]:live_end[i]], in
-the order of incidence, and the sweep walks only those; distance (P,) m, each pair's distance at x_det, or a
+vertex; live_incidence (4P,) and live_end (N,): the live pairs of each vertex (those that may come within the
+radius before the next refresh), near_incidence (4P,) and near_end (N,) the near ones among them
+(`refresh_bounds`); the sweep walks only the near ones, and all live ones once crossed[0] (1,) int32 says
+that a vertex has moved farther than the horizon (m) since x_det (`measure_moves`): either way in the order
+of the incidence lists, so that the sums are the same; distance (P,) m, each pair's distance at x_det, or a
 lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have not moved far
 enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since
 x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1 at the others; target
@@ -79,12 +81,17 @@ def moves_since(state: ti.template(), x_det: ti.template(), v):
 
 
 @ti.func
-def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), serial: ti.template()):
+def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), horizon, crossed: ti.template(),
+                  serial: ti.template()):
     """moved[i] = |x_i - x_det,i| in m for every vertex, so that the sweep reads a pair's `moves_since` as four
-    numbers (kept up to date by `apply_buffered`)."""
+    numbers, and crossed[0] = 1 if a vertex has moved farther than the horizon (m), else 0 (both kept up to
+    date by `apply_buffered`)."""
+    crossed[0] = 0
     ti.loop_config(serialize=serial)
     for i in range(moved.shape[0]):
         moved[i] = (state[X, i] - x_det[i]).norm()
+        if moved[i] > horizon:
+            crossed[0] = 1
 
 
 @ti.func
@@ -110,17 +117,19 @@ def partner_in_pass(color: ti.template(), v, i):
 @ti.func
 def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair: ti.template(),
                              incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                             moved: ti.template(), distance: ti.template(), color: ti.template(), k_c, r, mu, eps_u,
-                             jacobi: ti.template(), dtype: ti.template()):
-    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its live pairs at the current x;
-    a pair that cannot be within r (`may_be_within`, from the moves `moved` (N,) since x_det) is skipped
-    before its distance is computed. jacobi: count the blocks of pairs with a partner in i's colour
-    (`color` (N,)) twice, as the sweep solves them (module docstring); else each block once, G's."""
+                             near_incidence: ti.template(), near_end: ti.template(), every, moved: ti.template(),
+                             distance: ti.template(), color: ti.template(), k_c, r, mu, eps_u, jacobi: ti.template(),
+                             dtype: ti.template()):
+    """(f (3,), H (3x3), number of pairs closer than r) of vertex i from its near live pairs, or with every
+    from all its live pairs (`refresh_bounds`), at the current x; a pair that cannot be within r
+    (`may_be_within`, from the moves `moved` (N,) since x_det) is skipped before its distance is computed.
+    jacobi: count the blocks of pairs with a partner in i's colour (`color` (N,)) twice, as the sweep solves
+    them (module docstring); else each block once, G's."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
     active = 0
-    for s in range(incidence_offsets[i], live_end[i]):
-        p = live_incidence[s]
+    for s in range(incidence_offsets[i], live_end[i] if every else near_end[i]):
+        p = live_incidence[s] if every else near_incidence[s]
         v = pair[p]
         if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), r, 0):
             continue
@@ -150,16 +159,18 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
                          offsets: ti.template(), others: ti.template(), adj_f: ti.template(), params: ti.template(),
                          kind: ti.template(), pair: ti.template(), distance: ti.template(),
                          incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
-                         x_det: ti.template(), moved: ti.template(), bound: ti.template(), color: ti.template(),
+                         near_incidence: ti.template(), near_end: ti.template(), x_det: ti.template(),
+                         moved: ti.template(), crossed: ti.template(), bound: ti.template(), color: ti.template(),
                          target: ti.template(), touched: ti.template(), k, kc, rr, mu_c, friction_speed,
                          dtype: ti.template()):
     """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
-    when i has pairs; returns whether it hit its bound. moved (N,): `measure_moves`."""
+    when i has pairs; returns whether it hit its bound. moved (N,), crossed (1,): `measure_moves`."""
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                moved, distance, color, kc, rr, mu_c, eps_u, True, dtype)
+                                                near_incidence, near_end, crossed[0] != 0, moved, distance, color,
+                                                kc, rr, mu_c, eps_u, True, dtype)
     f += f_c
     H += H_c
     if active > 0:
@@ -183,13 +194,17 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
 
 @ti.func
 def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
-                   jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(), c):
-    """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), and their
-    moved[i] = |x_i - x_det,i| (only vertices with pairs are read there)."""
+                   jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(),
+                   horizon, crossed: ti.template(), c):
+    """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), their
+    moved[i] = |x_i - x_det,i| (only vertices with pairs are read there), and crossed[0] = 1 where one has
+    moved farther than the horizon (m)."""
     for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
         i = jacobi[j]
         state[X, i] = target[i]
         moved[i] = (target[i] - x_det[i]).norm()
+        if moved[i] > horizon:
+            crossed[0] = 1
 
 
 @ti.kernel
@@ -198,10 +213,11 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           color_starts: ti.types.ndarray(), params: ti.types.ndarray(), kind: ti.types.ndarray(),
                           pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                           incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
-                          live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
+                          live_end: ti.types.ndarray(), near_incidence: ti.types.ndarray(),
+                          near_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
+                          horizon: ti.f64, crossed: ti.types.ndarray(),
                           bound: ti.types.ndarray(), color: ti.types.ndarray(), target: ti.types.ndarray(),
-                          touched: ti.types.ndarray(),
-                          jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
+                          touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
                           dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
@@ -210,26 +226,30 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     if ti.static(buffered):
-        measure_moves(state, x_det, moved, serial)
+        measure_moves(state, x_det, moved, horizon, crossed, serial)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for c in range(color_starts.shape[0] - 1):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, color,
-                                        target, touched, k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, near_incidence, near_end, x_det,
+                                        moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
+                                        friction_speed, dtype):
                     hits += 1
             if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon,
+                               crossed, c)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
-                                        incidence_offsets, live_incidence, live_end, x_det, moved, bound, color,
-                                        target, touched, k, kc, rr, mu_c, friction_speed, dtype):
+                                        incidence_offsets, live_incidence, live_end, near_incidence, near_end, x_det,
+                                        moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
+                                        friction_speed, dtype):
                     ti.atomic_add(hits, 1)
             if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, c)
+                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon,
+                               crossed, c)
     return hits
 
 
@@ -256,7 +276,9 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
                    incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
                    x_det: ti.types.ndarray(), moved: ti.types.ndarray(), bound: ti.types.ndarray(),
                    live: ti.types.ndarray(), live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(),
-                   free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.f64:
+                   near_incidence: ti.types.ndarray(), near_end: ti.types.ndarray(), horizon: ti.f64,
+                   free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template(),
+                   lists: ti.template()) -> ti.f64:
     """New bounds at x = state[row] from the first n_pairs pairs, found by the last full detection at
     x_full (N,) (`contact_state.py`); returns Delta in m. distance (P,) holds on entry a lower bound of each
     pair's distance at x_det (exact below the cap q - 2 Delta), and on return one at x. In order:
@@ -266,11 +288,16 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
       distance[p] - pair_reach(s) apart at x: where that is below the cap q - 2 Delta, distance[p] = d_p,
       the exact distance at x; else the lower bound is kept, as it changes no bound (nor when s = 0);
       b_i = g min(q - 2 Delta, distance[p] of each pair p of i) and x_det,i = x_i, for every vertex;
+    and with lists (without, live and the lists stay as they were: for a refresh that another follows
+    before the next iteration, `contact_state.ContactStage.begin_step`):
       live[p] = 1 unless distance[p] >= r + (largest b of its first primitive) + (largest b of its second),
       b counted 0 at the vertices the sweep does not move (free (N,) int32 is 0 there): until the next
       refresh such a pair stays beyond the radius, and the sweep skips it;
       live_incidence[incidence_offsets[i]:live_end[i]] = the live pairs of incidence[incidence_offsets[i]:
-      incidence_offsets[i + 1]], in order, for every vertex (the sweep walks only those)."""
+      incidence_offsets[i + 1]], in order, for every vertex (the sweep walks only those), and
+      near_incidence[incidence_offsets[i]:near_end[i]] those of them closer than r + 2 horizon (near), in
+      order (while no vertex has moved farther than the horizon since x_det, the others are beyond the
+      radius: the sweep walks only the near ones until one has)."""
     delta = ti.cast(0.0, ti.f64)
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
@@ -295,19 +322,27 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
             nearest = ti.min(nearest, distance[incidence[s]])
         bound[i] = ti.cast(g * nearest, dtype)
         x_det[i] = state[row, i]
-    ti.loop_config(serialize=serial)
-    for p in range(n_pairs):
-        v = pair[p]
-        b = ti.Vector([bound[v[j]] * free[v[j]] for j in ti.static(range(4))])
-        live[p] = ti.cast(distance[p] < r + pair_reach(kind[p], b), ti.i32)
-    ti.loop_config(serialize=serial)
-    for i in range(x_full.shape[0]):
-        end = incidence_offsets[i]
-        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
-            if live[incidence[s]]:
-                live_incidence[end] = incidence[s]
-                end += 1
-        live_end[i] = end
+    if ti.static(lists):
+        ti.loop_config(serialize=serial)
+        for p in range(n_pairs):
+            v = pair[p]
+            b = ti.Vector([bound[v[j]] * free[v[j]] for j in ti.static(range(4))])
+            live[p] = ti.cast(distance[p] < r + pair_reach(kind[p], b), ti.i32)
+        near = ti.cast(r + 2 * horizon, dtype)
+        ti.loop_config(serialize=serial)
+        for i in range(x_full.shape[0]):
+            end = incidence_offsets[i]
+            end_near = end
+            for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
+                p = incidence[s]
+                if live[p]:
+                    live_incidence[end] = p
+                    end += 1
+                    if distance[p] < near:
+                        near_incidence[end_near] = p
+                        end_near += 1
+            live_end[i] = end
+            near_end[i] = end_near
     return delta
 
 
@@ -396,22 +431,25 @@ def contact_energy(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti
 def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.ndarray(), kind: ti.types.ndarray(),
                               pair: ti.types.ndarray(), distance: ti.types.ndarray(),
                               incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
-                              live_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
-                              color: ti.types.ndarray(), params: ti.types.ndarray(), f_out: ti.types.ndarray(),
-                              H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64,
-                              dtype: ti.template()) -> ti.f64:
+                              live_end: ti.types.ndarray(), near_incidence: ti.types.ndarray(),
+                              near_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
+                              crossed: ti.types.ndarray(), color: ti.types.ndarray(), params: ti.types.ndarray(),
+                              f_out: ti.types.ndarray(), H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
+                              friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
-    (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`. The blocks are G's, each
-    pair's once: the sweep's Jacobi factor (module docstring) is not part of G, and color (N,) goes unread."""
+    (x_det = x); return max_i |f_i| in N. moved (N,), crossed (1,): scratch for `measure_moves`; every live
+    pair is walked. The blocks are G's, each pair's once: the sweep's Jacobi factor (module docstring) is
+    not part of G, and color (N,) goes unread."""
     result = ti.cast(0.0, ti.f64)
-    measure_moves(state, x_det, moved, False)
+    measure_moves(state, x_det, moved, 0.0, crossed, False)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
-        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                    moved, distance, color, ti.cast(k_c, dtype), ti.cast(r, dtype),
-                                                    ti.cast(mu, dtype), eps_u, False, dtype)
+        f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence,
+                                                    live_end, near_incidence, near_end, True, moved, distance, color,
+                                                    ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype), eps_u,
+                                                    False, dtype)
         f_out[i] += f_c
         H_out[i] += H_c
         ti.atomic_max(result, ti.cast(f_out[i].norm(), ti.f64))
