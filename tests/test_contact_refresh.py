@@ -13,7 +13,7 @@ import solver
 from solver._ti import ti
 from solver.physics.contact import PairKind, pair_geometry_np
 from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np
-from solver.vbd import contact_state
+from solver.vbd import contact_state, contact_sweep
 from solver.vbd.contact_sweep import may_be_within, moves_since
 from solver.vbd.layout import STATE_ROWS, X
 
@@ -144,17 +144,21 @@ def test_the_serial_and_parallel_contact_sweeps_give_the_same_steps():
     assert runs[0][1:] == runs[1][1:]
 
 
-def test_walking_only_the_near_pairs_changes_no_step(monkeypatch):
-    """Two cubes 7 mm apart settling on a fixed slab: the sweep walks only the near live pairs (closer than
-    r + 2 horizon) while no vertex has moved farther than the horizon, and the steps are bit for bit those
-    of a sweep that walks every live pair (horizon 0: every move crosses it)."""
+def test_walking_only_the_near_pairs_and_leaving_out_refreshes_change_no_step(monkeypatch):
+    """Two cubes 7 mm apart settling on a fixed slab. The sweep walks only the near live pairs (closer than
+    r + 2 horizon) while no vertex has moved farther than the horizon, and a step leaves out the refresh at
+    x_n where it would neither detect nor clamp the guess (`contact_sweep.guess_within_bounds`); the steps
+    are bit for bit those of a sweep that walks every live pair (horizon 0: every move crosses it) and
+    refreshes at every x_n."""
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
     cubes = [solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(x, 0, 0.004)) for x in (0, 0.107)]
     mesh = solver.merge_meshes([slab, *cubes])
     contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
     runs = []
-    for horizon in (contact_state.NEAR_HORIZON, 0.0):
-        monkeypatch.setattr(contact_state, "NEAR_HORIZON", horizon)
+    for shortcuts in (True, False):
+        if not shortcuts:
+            monkeypatch.setattr(contact_state, "NEAR_HORIZON", 0.0)
+            monkeypatch.setattr(contact_sweep, "guess_within_bounds", lambda *args: 0)
         sim = solver.Simulation(mesh, SOFT, dt=1 / 60, fixed=np.arange(slab.n_vertices), iterations=10,
                                 contact=contact)
         stage = sim._contact_stage
@@ -166,10 +170,10 @@ def test_walking_only_the_near_pairs_changes_no_step(monkeypatch):
                 live_end, near_end = stage.live_end.to_numpy(), stage.near_end.to_numpy()
                 near_only += int(stage._crossed.to_numpy()[0] == 0 and (near_end < live_end).any())
             sim.end_step()
-        runs.append((sim.positions, near_only, sim.contact_count()))
-    (x_near, near_only, count), (x_every, none, _) = runs
-    assert count > 0 and near_only > 0 and none == 0
-    np.testing.assert_array_equal(x_near, x_every)
+        runs.append((sim.positions, near_only, stage.refreshes + stage.detections, sim.contact_count()))
+    (x_short, near_only, refreshes, count), (x_every, none, every_refresh, _) = runs
+    assert count > 0 and near_only > 0 and none == 0 and refreshes < every_refresh
+    np.testing.assert_array_equal(x_short, x_every)
 
 
 @ti.kernel

@@ -32,7 +32,10 @@ When: a full detection whenever positions move outside that margin (checked at e
 `Contact.detection_interval` iterations otherwise); a refresh at the start of every step (at x_n; the
 initial guess is then clamped to the bounds), again before its first iteration (at the clamped guess),
 and before any iteration that follows one in which a vertex hit its bound (bounds may cost refreshes,
-never progress). The refresh at x_n only sets bounds: the one at the guess lists the live pairs.
+never progress). The refresh at x_n only sets bounds: the one at the guess lists the live pairs. Where
+the first would change nothing it is left out: the second finds the same distances below the cap (each
+pair's distance is measured wherever a lower bound of it falls below) and so the same bounds, lists
+and forces, whether the last refresh was at x_n or earlier.
 """
 import numpy as np
 from scipy.spatial import cKDTree
@@ -148,11 +151,16 @@ class ContactStage:
     def begin_step(self, state, color_order) -> None:
         """Refresh the bounds at x_n and clamp the initial guess to them, then have the first iteration
         refresh at the clamped guess, where kinematic vertices already sit at their targets (so the first
-        refresh lists no live pairs); no vertex has touched yet. Called after the guess is set, so the row
-        X_N holds x_n and X the guess."""
+        refresh lists no live pairs); no vertex has touched yet. The refresh at x_n is left out where it
+        would change nothing: no detection, and no bound it could set below the guess's move
+        (`contact_sweep.guess_within_bounds`; the refresh at the guess then finds the same bounds and
+        pairs, module docstring). Called after the guess is set, so the row X_N holds x_n and X the guess."""
         contact_sweep.clear(self.touched)
-        self.refresh(state, X_N, lists=False)
-        self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
+        c = self.contact
+        if not contact_sweep.guess_within_bounds(state, color_order, self.x_det, self.x_full, self.bound,
+                                                 c.bound_relaxation, c.query_radius - c.radius, self.dtype):
+            self.refresh(state, X_N, lists=False)
+            self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
         self._due = True
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:

@@ -53,6 +53,8 @@ from .chebyshev import chebyshev_update
 from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV
 from .vertex_solve import force_hessian, newton_step, step_limit
 
+SAFETY = 0.999      # `guess_within_bounds`: the fraction of the least bound a refresh at x_n would set
+
 
 @ti.func
 def pair_reach(kind, s):
@@ -383,6 +385,28 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
             state[X, i] = x_det[i] + moved * ti.cast(bound[i] / length, dtype)
             ti.atomic_add(hits, 1)
     return hits
+
+
+@ti.kernel
+def guess_within_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
+                        x_full: ti.types.ndarray(), bound: ti.types.ndarray(), g: ti.f64, margin: ti.f64,
+                        dtype: ti.template()) -> ti.i32:
+    """Whether refreshing at x_n (row X_N) would neither detect nor clamp the initial guess (row X), without
+    measuring a pair: with M = max_j |x_n,j - x_det,j| each pair has come at most 2 M closer since x_det and
+    the cap q - 2 Delta has fallen by at most 2 M, so the bounds a refresh at x_n would set are at least
+    b_i - 2 g M; 1 if every free vertex's guess lies within SAFETY of that of x_n,i and 2 max_j
+    |x_n,j - x_full,j| is below margin (q - r) in m, else 0."""
+    M = ti.cast(0.0, ti.f64)
+    delta = ti.cast(0.0, ti.f64)
+    for i in range(x_det.shape[0]):
+        ti.atomic_max(M, ti.cast((state[X_N, i] - x_det[i]).norm(), ti.f64))
+        ti.atomic_max(delta, ti.cast((state[X_N, i] - x_full[i]).norm(), ti.f64))
+    outside = 0
+    for k in range(color_order.shape[0]):
+        i = color_order[k]
+        if (state[X, i] - state[X_N, i]).norm() > ti.cast(SAFETY * (bound[i] - 2 * g * M), dtype):
+            ti.atomic_add(outside, 1)
+    return ti.cast(outside == 0 and 2 * delta < margin, ti.i32)
 
 
 @ti.kernel
