@@ -69,12 +69,12 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch(monkeypatch)
             nearest = np.full(mesh.n_vertices, q - 2 * delta)
             np.minimum.at(nearest, vertices.ravel(), np.repeat(pair_geometry_np(kind, x_det[vertices])[0], 4))
             np.testing.assert_allclose(bound, g * nearest, rtol=1e-12, atol=0)
-            # which needs exact distances only below that cap: distance holds a lower bound of each pair's
-            # distance at x_det, exact where it is below the cap
+            # which needs exact distances only where they set a bound: distance holds a lower bound of each
+            # pair's distance at x_det, the distance itself where flagged exact
             held, exact = stage.distance.to_numpy()[:len(kind)], pair_geometry_np(kind, x_det[vertices])[0]
             assert (held <= exact * (1 + 1e-12)).all()
-            below = held < q - 2 * delta
-            np.testing.assert_allclose(held[below], exact[below], rtol=1e-12, atol=0)
+            flagged = stage._exact.to_numpy()[:len(kind)] == 1
+            np.testing.assert_allclose(held[flagged], exact[flagged], rtol=1e-12, atol=0)
             lower_bounds_seen += np.count_nonzero(held < exact * (1 - 1e-9))
             assert (np.linalg.norm(x - x_det, axis=1) <= bound * (1 + 1e-12)).all()
             # L's pairs closer than the radius at x are a fresh detection's

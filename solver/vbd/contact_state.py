@@ -15,10 +15,12 @@ can meet: two that were d apart close by at most 2 g d < d. No crossing by const
 al. 2025]), whatever the refreshes. The pairs of L are the only ones that can be closer than the radius
 r while 2 Delta < q - r; past that L may miss an active pair, and a full detection replaces the refresh.
 
-Only the pairs that can lower a bound need measuring: a pair whose vertices have moved s since x_det is
-at least its distance there less `pair_reach`(s) apart, and where that is at least the cap q - 2 Delta it
-changes no b_v. The refresh keeps that lower bound as the pair's distance instead (`refresh_bounds`):
-the bounds are the same, and far pairs go unmeasured.
+Only the pairs that can set a bound need measuring: a pair whose vertices have moved s since x_det has
+come at most `pair_reach`(s) closer, so a measured pair is at most its distance there plus that apart,
+and every pair at least its distance there less that. A pair whose lower bound is at least the cap
+q - 2 Delta, or at least that upper bound of the closest measured pair of each of its vertices, sets no
+b_v. The refresh keeps that lower bound as the pair's distance instead (`refresh_bounds`): the bounds are
+the same, and in a resting pile few pairs besides the closest one of each vertex are measured.
 
 The same bounds tell which pairs can matter before the next refresh: a pair d_p apart at x_det whose
 vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays
@@ -79,6 +81,8 @@ class ContactStage:
         self.bound = ti.ndarray(dtype, n)
         self._moved = ti.ndarray(dtype, n)
         self.distance = ti.ndarray(dtype, 64)       # per pair, grown with the pair count
+        self._exact = ti.ndarray(ti.i32, 64)        # whether distance holds the distance itself
+        self._reach = ti.ndarray(dtype, 64)         # scratch for `refresh_bounds`
         self.live = ti.ndarray(ti.i32, 64)
         self.live_incidence = ti.ndarray(ti.i32, 4 * 64)
         self.live_end = ti.ndarray(ti.i32, n)
@@ -107,12 +111,15 @@ class ContactStage:
         n_pairs = self.detector.detect(state, row)
         if n_pairs > self.live.shape[0]:
             self.distance = ti.ndarray(self.dtype, 2 * n_pairs)
+            self._exact = ti.ndarray(ti.i32, 2 * n_pairs)
+            self._reach = ti.ndarray(self.dtype, 2 * n_pairs)
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
             self.live_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
             self.near_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
         contact_sweep.copy_row(state, row, self.x_full)
         contact_sweep.copy_row(state, row, self.x_det)
         contact_sweep.copy_prefix(self.detector.distance, n_pairs, self.distance)   # exact at x_det
+        self._exact.fill(1)
         self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
         self._listed = False
         self.detections += 1
@@ -134,7 +141,8 @@ class ContactStage:
         d, c = self.detector, self.contact
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
-                                             self.distance, self.x_det, self._moved, self.bound, self.live,
+                                             self.distance, self._exact, self._reach, self.x_det, self._moved,
+                                             self.bound, self.live,
                                              self.live_incidence, self.live_end, self.near_incidence, self.near_end,
                                              NEAR_HORIZON * c.radius, self._free, self.dtype, self._serial,
                                              lists)

@@ -54,6 +54,7 @@ from .layout import KEEP_ORIENTATION, TIME_STEP, X, X_N, X_PREV
 from .vertex_solve import force_hessian, newton_step, step_limit
 
 SAFETY = 0.999      # `guess_within_bounds`: the fraction of the least bound a refresh at x_n would set
+MEASURE_ROUNDOFF = 1e-6     # x query radius: `refresh_bounds` measures the pairs whose lower bound is this close
 
 
 @ti.func
@@ -276,20 +277,29 @@ def list_jacobi_vertices(color_order: ti.types.ndarray(), color_starts: ti.types
 def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray(), kind: ti.types.ndarray(),
                    pair: ti.types.ndarray(), n_pairs: ti.i32, incidence_offsets: ti.types.ndarray(),
                    incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
-                   x_det: ti.types.ndarray(), moved: ti.types.ndarray(), bound: ti.types.ndarray(),
+                   exact: ti.types.ndarray(), reach: ti.types.ndarray(), x_det: ti.types.ndarray(),
+                   moved: ti.types.ndarray(), bound: ti.types.ndarray(),
                    live: ti.types.ndarray(), live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(),
                    near_incidence: ti.types.ndarray(), near_end: ti.types.ndarray(), horizon: ti.f64,
                    free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template(),
                    lists: ti.template()) -> ti.f64:
     """New bounds at x = state[row] from the first n_pairs pairs, found by the last full detection at
     x_full (N,) (`contact_state.py`); returns Delta in m. distance (P,) holds on entry a lower bound of each
-    pair's distance at x_det (exact below the cap q - 2 Delta), and on return one at x. In order:
+    pair's distance at x_det, the distance itself where exact (P,) int32 is 1, and on return the same at x.
+    In order:
       Delta = max_i |x_i - x_full,i| over every vertex (fixed and kinematic ones included), and
       moved[i] = |x_i - x_det,i| (scratch);
-      for every pair, its vertices moved s (4,) since x_det, so it is at least
-      distance[p] - pair_reach(s) apart at x: where that is below the cap q - 2 Delta, distance[p] = d_p,
-      the exact distance at x; else the lower bound is kept, as it changes no bound (nor when s = 0);
-      b_i = g min(q - 2 Delta, distance[p] of each pair p of i) and x_det,i = x_i, for every vertex;
+      for every pair, its vertices moved s (4,) since x_det, so it has come at most reach[p] = pair_reach(s)
+      closer (scratch (P,)), and it is at least distance[p] - reach[p] and, where exact, at most
+      distance[p] + reach[p] apart at x;
+      U_i = min(q - 2 Delta, distance[p] + reach[p] of each exact pair p of i), at least the distance of
+      i's closest pair at x (scratch, in bound);
+      for every pair whose lower bound distance[p] - reach[p] is below (a round-off above) the U_i of one
+      of its vertices, distance[p] = d_p, the exact distance at x; every other pair is farther than the
+      closest pair of each of its vertices (or the cap), changes no bound and keeps the lower bound (not
+      exact, unless nothing moved);
+      b_i = g min(q - 2 Delta, distance[p] of each pair p of i) and x_det,i = x_i, for every vertex: the
+      bounds of the exact distances;
     and with lists (without, live and the lists stay as they were: for a refresh that another follows
     before the next iteration, `contact_state.ContactStage.begin_step`):
       live[p] = 1 unless distance[p] >= r + (largest b of its first primitive) + (largest b of its second),
@@ -309,14 +319,29 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
         v = pair[p]
-        reach = pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))]))
-        if reach > 0:
-            if distance[p] - reach < cap:
+        reach[p] = pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))]))
+    ti.loop_config(serialize=serial)
+    for i in range(x_full.shape[0]):
+        upper = cap
+        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
+            p = incidence[s]
+            if exact[p]:
+                upper = ti.min(upper, distance[p] + reach[p])
+        bound[i] = upper
+    roundoff = ti.cast(MEASURE_ROUNDOFF * q, dtype)
+    ti.loop_config(serialize=serial)
+    for p in range(n_pairs):
+        if reach[p] > 0 or not exact[p]:
+            v = pair[p]
+            lower = distance[p] - reach[p]
+            if lower < ti.max(bound[v[0]], bound[v[1]], bound[v[2]], bound[v[3]]) + roundoff:
                 d, w, n = pair_geometry(kind[p], state[row, v[0]], state[row, v[1]], state[row, v[2]],
                                         state[row, v[3]], dtype)
                 distance[p] = d
+                exact[p] = 1
             else:
-                distance[p] -= reach
+                distance[p] = lower
+                exact[p] = 0
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         nearest = cap
