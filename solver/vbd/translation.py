@@ -41,6 +41,10 @@ the largest of 1, 1/2, 1/4, 1/8 for which G does not rise, or dropped (`energy_c
 four in one launch: inertia, ground and the pairs between bodies; the elastic energy does not change).
 Friction is not part of G, so with friction this line search may shorten a step that friction asks for.
 
+A body touching another whose d_b is shorter than friction_speed h (the slip under which the friction
+law holds a contact almost as if it stuck) is left alone. A resting body's correction answers only what
+the sweeps left unconverged, and applied at every step it makes stacked bodies rock (chapter 8).
+
 Block Jacobi keeps each body's forces in balance, not the whole mesh's: the contact blocks a body
 counts in A_b push the two bodies of a pair by different amounts, so the forces of all bodies no longer
 sum to zero, and a mesh of free bodies would gain momentum h sum_i f_i. Where every vertex is free,
@@ -153,9 +157,12 @@ def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.type
 
 @ti.kernel
 def body_steps(corrected: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(),
-               touching: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray()):
+               touching: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(),
+               params: ti.types.ndarray(), friction_speed: ti.f64):
     """d_b = (diag(D_b) + K_b)^-1 F_b for each corrected body (F_b / D_b componentwise for one touching no
-    other body), 0 for the others; alpha_b = 1."""
+    other body), 0 for the others and for a body touching another whose d_b is shorter than
+    friction_speed h in m (module docstring; 0 without contact); alpha_b = 1."""
+    least = friction_speed * params[TIME_STEP]
     for b in range(F.shape[0]):
         step = ti.Vector.zero(ti.f64, 3)
         if corrected[b]:
@@ -166,6 +173,8 @@ def body_steps(corrected: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types
                 for a in ti.static(range(3)):
                     A[a, a] += D[b][a]
                 step = A.inverse() @ F[b]
+                if step.norm() < least:
+                    step = ti.Vector.zero(ti.f64, 3)
         d[b] = step
         alpha[b] = 1.0
 
@@ -338,7 +347,8 @@ class BodyTranslation:
             pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance,
                       contact_stage.live, body, corrected, self.F, self.K, self.touching, params, c.stiffness,
                       c.radius, c.friction, c.friction_speed, self._ordered, dtype)
-        body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha)
+        body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha, params,
+                   0.0 if contact_stage is None else contact_stage.contact.friction_speed)
         self.scale = 1.0
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
