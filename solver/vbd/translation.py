@@ -205,11 +205,12 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
                    change: ti.types.ndarray(), ordered: ti.template()):
     """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
     corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
-    elastic energy and the pairs within a body do not change under a translation of the body). A pair that
-    cannot come within r under the largest of the translations is skipped: not live (the translations keep
-    every vertex within its bound, `limit_to_bounds`), or by `contact_sweep.may_be_within` (x_det,
-    distance, live as for `pair_sums`). ordered: the vertices' changes go to change_i (N,) TRIALS-vectors
-    first and are summed on one thread, as are the pairs' (the same sums on every run)."""
+    elastic energy and the pairs within a body do not change under a translation of the body). A pair whose
+    two bodies both stay put does not change and is skipped, as is one that cannot come within r under the
+    largest of the translations: not live (the translations keep every vertex within its bound,
+    `limit_to_bounds`), or by `contact_sweep.may_be_within` (x_det, distance, live as for `pair_sums`).
+    ordered: the vertices' changes go to change_i (N,) TRIALS-vectors first and are summed on one thread,
+    as are the pairs' (the same sums on every run)."""
     for s in ti.static(range(TRIALS)):
         change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
@@ -247,7 +248,7 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
             continue
         largest = (body_shift(v[0], body, corrected, d, alpha, 1.0).norm()          # the scale-1 translations
                    + body_shift(v[3], body, corrected, d, alpha, 1.0).norm())
-        if not may_be_within(distance, kind[p], p, moves_since(state, x_det, v), r, largest):
+        if largest == 0 or not may_be_within(distance, kind[p], p, moves_since(state, x_det, v), r, largest):
             continue
         x0, x1 = ti.cast(state[X, v[0]], ti.f64), ti.cast(state[X, v[1]], ti.f64)
         x2, x3 = ti.cast(state[X, v[2]], ti.f64), ti.cast(state[X, v[3]], ti.f64)
