@@ -35,9 +35,9 @@ When: a full detection whenever positions move outside that margin (checked at e
 initial guess is then clamped to the bounds), again before its first iteration (at the clamped guess),
 and before any iteration that follows one in which a vertex hit its bound (bounds may cost refreshes,
 never progress). The refresh at x_n only sets bounds: the one at the guess lists the live pairs. Where
-the first would change nothing it is left out: the second finds the same distances below the cap (each
-pair's distance is measured wherever a lower bound of it falls below) and so the same bounds, lists
-and forces, whether the last refresh was at x_n or earlier.
+the first would change nothing it is left out: the second sets the same bounds whether the last refresh
+was at x_n or earlier (it measures every pair that may be a vertex's closest), and the forces do not
+depend on the lower bounds it keeps for the others.
 """
 import numpy as np
 from scipy.spatial import cKDTree
@@ -142,10 +142,9 @@ class ContactStage:
         delta = contact_sweep.refresh_bounds(state, row, self.x_full, d.kind, d.pair, d.n_pairs, d.incidence_offsets,
                                              d.incidence, c.query_radius, c.radius, c.bound_relaxation,
                                              self.distance, self._exact, self._reach, self.x_det, self._moved,
-                                             self.bound, self.live,
-                                             self.live_incidence, self.live_end, self.near_incidence, self.near_end,
-                                             NEAR_HORIZON * c.radius, self._free, self.dtype, self._serial,
-                                             lists)
+                                             self.bound, self.live, self.live_incidence, self.live_end,
+                                             self.near_incidence, self.near_end, NEAR_HORIZON * c.radius,
+                                             self._free, self.dtype, self._serial, lists)
         self._since_check = 0
         self._due = False
         return delta
