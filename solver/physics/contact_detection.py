@@ -203,7 +203,9 @@ def exclusive_scan(counts: ti.types.ndarray(), starts: ti.types.ndarray(), n: ti
 
 @ti.func
 def sort_segment(values: ti.template(), begin, end):
-    """Insertion sort of values[begin:end] ascending (segments are short)."""
+    """Insertion sort of values[begin:end] ascending: the scatters fill each segment from its front, in the
+    order their loop ran, so that only what the threads interleaved is moved (filled from the back, a
+    bucket of a few hundred items in a pile was sorted from descending order: 2.8x the time)."""
     for a in range(begin + 1, end):
         v = values[a]
         b = a
@@ -352,7 +354,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
                                   (lo[item][2], hi[item][2] + 1)):
             h = cell_hash(ti.Vector([i, j, k]), mask)
-            e = bucket_start[h] + ti.atomic_sub(bucket_fill[h], 1) - 1
+            e = bucket_start[h + 1] - ti.atomic_sub(bucket_fill[h], 1)     # from the front: `sort_segment`
             if fits:
                 entries[e] = item
     for h in range(n_buckets if fits else 0):
@@ -457,7 +459,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     for p in range(n_pairs if placed else 0):   # counts back down to zero, ready for the next detection
         for j in ti.static(range(4)):
             v = pair[p][j]
-            incidence[offsets[v] + ti.atomic_sub(vertex_fill[v], 1) - 1] = p
+            incidence[offsets[v + 1] - ti.atomic_sub(vertex_fill[v], 1)] = p   # from the front
     for v in range(n):
         sort_segment(incidence, offsets[v], offsets[v + 1])
         nearest = q
