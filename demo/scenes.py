@@ -67,6 +67,17 @@ class BoxMesh:
 
 
 @dataclass(frozen=True)
+class BallMesh:
+    """A ball of radius (m) around the origin, cells (even) hexahedra per diameter (`solver.ball_mesh`)."""
+
+    radius: float = 0.1
+    cells: int = 4
+
+    def build(self):
+        return solver.ball_mesh(radius=self.radius, cells=self.cells)
+
+
+@dataclass(frozen=True)
 class AssetMesh:
     """A mesh file under the repository (a surface file is voxelised at ``resolution``), moved by ``offset`` (m)."""
 
@@ -433,9 +444,9 @@ SCENES = {scene.name: scene for scene in [
 ]}
 
 
-# contact between bodies (lecture notes chapter 8): balls of radius 0.1 m voxelised from the sphere asset
-BALL = AssetMesh("assets/sphere.obj", resolution=5)
+# contact between bodies (lecture notes chapter 8): balls of radius 0.1 m
 BALL_R = 0.1
+BALL = BallMesh(radius=BALL_R, cells=4)
 PILE_W, PILE_T, PILE_H, PILE_GAP = 0.45, 0.03, 0.35, 0.006   # m: box inside width, wall thickness, wall height,
 #                                                           the walls' clearance off the floor (bodies may not touch)
 PILE_WALLS = (BoxMesh(size=(PILE_W + 2 * PILE_T, PILE_W + 2 * PILE_T, PILE_T), cells=(3, 3, 1),
@@ -456,10 +467,10 @@ SCENES.update({scene.name: scene for scene in [
     Scene(
         name="pile",
         title="Eight soft balls dropped into an open box (contact, friction 0.3)",
-        description="Eight voxelised balls (radius 0.1 m, E = 1e5 Pa) in two layers of 2 x 2 fall into an open box of "
-                    "five fixed slabs. Contact between bodies is OGC's two-stage barrier (radius 5 mm, k = 1e4 N/m, "
-                    "friction 0.3); between refreshes of the bounds each vertex moves at most 0.45 of its distance to "
-                    "its closest pair, so no ball crosses another or a wall.",
+        description="Eight balls (radius 0.1 m, 384 tets each, E = 1e5 Pa) in two layers of 2 x 2 fall into an open "
+                    "box of five fixed slabs. Contact between bodies is OGC's two-stage barrier (radius 5 mm, "
+                    "k = 1e4 N/m, friction 0.3); between refreshes of the bounds each vertex moves at most 0.45 of "
+                    "its distance to its closest pair, so no ball crosses another or a wall.",
         panels=(Panel(label="8 balls, E = 1e5 Pa, contact friction 0.3", material=_material(1e5),
                       mesh=Bodies(PILE_WALLS + (BALL,) * 8, ((0.0, 0.0, 0.0),) * 5 + PILE_BALLS),
                       iterations=20, fixed=(Outside(upper=(PILE_W, PILE_W, np.inf)),), contact=PILE_CONTACT),),
@@ -470,7 +481,7 @@ SCENES.update({scene.name: scene for scene in [
     Scene(
         name="head_on",
         title="Two soft balls meet head-on at 1 m/s each (no gravity, no friction)",
-        description="Two voxelised balls (radius 0.1 m, E = 1e5 Pa) 10 cm apart move towards each other at 1 m/s "
+        description="Two balls (radius 0.1 m, 384 tets each, E = 1e5 Pa) 10 cm apart move towards each other at 1 m/s "
                     "each, without gravity or friction, and rebound off the contact barrier (radius 1 cm, "
                     "k = 1e3 N/m). The total momentum stays near zero. The ghost is the converged trajectory "
                     "(Newton with contact, method='newton'); the error compares each VBD step with the "

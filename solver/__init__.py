@@ -17,7 +17,7 @@ from .physics.contact import Contact
 from .physics.ground import Ground
 from .errors import ConfigError, MeshError, MeshQualityWarning, MeshWarning, VBDError
 from .physics.material import Material
-from .mesh.tetmesh import TetMesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
+from .mesh.tetmesh import TetMesh, ball_mesh, box_mesh, boundary_faces, load_mesh, save_mesh, sliver_box_mesh
 from .method import Method
 from .metrics import relative_energy_gap, relative_error
 from .mesh.quality import MeshQuality, det_F, inverted_count
@@ -43,7 +43,7 @@ def __getattr__(name):
 __all__ = [
     "Coloring", "ConfigError", "Contact", "Ground", "InitialGuess", "IterationRecord", "Material", "MeshError",
     "MeshQuality", "MeshQualityWarning", "MeshWarning", "Mesher", "Method", "Precision", "Settings", "Simulation",
-    "TetMesh", "Topology", "VBDError", "VertexOrder", "boundary_faces", "box_mesh", "color_vertices", "det_F",
+    "TetMesh", "Topology", "VBDError", "VertexOrder", "ball_mesh", "boundary_faces", "box_mesh", "color_vertices", "det_F",
     "ensure_taichi", "inverted_count", "is_valid_coloring", "load_mesh", "merge_meshes", "relative_energy_gap",
     "relative_error", "save_mesh", "sliver_box_mesh",
 ]

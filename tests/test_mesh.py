@@ -21,6 +21,52 @@ def test_box_mesh_is_conforming_positive_and_fills_the_box():
     assert len(faces) == 2 * 2 * (10 * 2 + 10 * 3 + 2 * 3)
 
 
+@pytest.mark.parametrize("cells", [2, 4, 6])
+def test_ball_mesh_is_conforming_round_and_free_of_slivers(cells):
+    """Its boundary is the sphere (every boundary node at the radius, no interior face left open: a
+    conforming split), its volume approaches the ball's, and no tet is a sliver or badly shaped."""
+    center = np.array([0.3, -0.2, 1.0])
+    mesh = solver.ball_mesh(radius=0.1, cells=cells, center=center)
+    assert mesh.n_vertices == (cells + 1) ** 3 and mesh.n_tets == 6 * cells ** 3
+    faces = mesh.boundary_faces()
+    assert len(faces) == 6 * 2 * cells ** 2                       # a quad sphere: 2 triangles per cube face cell
+    radii = np.linalg.norm(mesh.vertices[np.unique(faces)] - center, axis=1)
+    np.testing.assert_allclose(radii, 0.1, rtol=1e-12)
+    inner = np.setdiff1d(np.arange(mesh.n_vertices), faces)
+    assert (np.linalg.norm(mesh.vertices[inner] - center, axis=1) < 0.1 - 1e-3).all()
+    x = mesh.vertices
+    normals = np.cross(x[faces[:, 1]] - x[faces[:, 0]], x[faces[:, 2]] - x[faces[:, 0]])
+    assert ((normals * (x[faces].mean(axis=1) - center)).sum(axis=1) > 0).all()
+    quality = mesh.quality()
+    assert quality.n_slivers == 0 and quality.n_inverted == 0
+    assert quality.min_radius_ratio > 0.65 and 30 < quality.min_dihedral_degrees < quality.max_dihedral_degrees < 111
+    ball = 4 / 3 * np.pi * 0.1 ** 3
+    assert {2: 0.77, 4: 0.93, 6: 0.97}[cells] * ball < mesh.rest_volumes().sum() < ball
+
+
+def test_ball_mesh_is_symmetric_under_every_axis_reflection():
+    mesh = solver.ball_mesh(radius=1.0, cells=4)
+    for axis in range(3):
+        mirrored = mesh.vertices.copy()
+        mirrored[:, axis] *= -1
+        order = np.lexsort(mesh.vertices.T)
+        np.testing.assert_allclose(mirrored[np.lexsort(mirrored.T)], mesh.vertices[order], atol=1e-15)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(radius=0.0), "ball radius must be a positive length in m, got 0.0"),
+    (dict(radius=float("nan")), "ball radius must be a positive length"),
+    (dict(radius="1"), "ball radius must be a positive length in m, got '1'"),
+    (dict(cells=3), r"ball cells must be an even integer >= 2 \(cells per diameter\), got 3"),
+    (dict(cells=4.0), "ball cells must be an even integer"),
+    (dict(cells=0), "ball cells must be an even integer"),
+    (dict(center=(0.0, float("inf"), 0.0)), "ball center must be three finite coordinates in m"),
+])
+def test_ball_mesh_refuses_nonsense_in_one_line(kwargs, match):
+    with pytest.raises(solver.MeshError, match=match):
+        solver.ball_mesh(**kwargs)
+
+
 def test_boundary_faces_point_outward():
     mesh = solver.box_mesh(size=(1.0, 1.0, 1.0), cells=(3, 3, 3))
     x = mesh.vertices

@@ -9,6 +9,6 @@ from .bodies import body_labels, merge_meshes
 from .coloring import Coloring, VertexOrder, color_vertices, is_valid_coloring
 from .quality import MeshQuality, det_F, inverted_count
 from .surface import SurfacePrimitives, surface_primitives
-from .tetmesh import TetMesh, boundary_faces, box_mesh, load_mesh, save_mesh, sliver_box_mesh
+from .tetmesh import TetMesh, ball_mesh, boundary_faces, box_mesh, load_mesh, save_mesh, sliver_box_mesh
 from .tetrahedralize import Mesher
 from .topology import Topology

@@ -80,11 +80,14 @@ def signed_volumes(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.linalg.det(np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)) / 6.0
 
 
-def kuhn_tets(cells: np.ndarray, node_dims) -> np.ndarray:
+def kuhn_tets(cells: np.ndarray, node_dims, mirror: np.ndarray = None) -> np.ndarray:
     """Split hexahedral lattice cells into 6 tets each (Kuhn/Freudenthal split along the main diagonal).
 
     cells: (C, 3) integer cell coordinates (i, j, k); node_dims: (nx+1, ny+1, nz+1) lattice nodes.
     Every cell is cut the same way, so neighbouring cells share faces exactly (a conforming mesh).
+    mirror: (C, 3) bool, the axes along which a cell's split is reflected (default none). The mesh stays
+    conforming where two cells that share a face reflect alike along the face's two axes (`ball_mesh`
+    reflects along each axis in the lower half of the lattice).
     Returns (6C, 4) node indices `(i * ny1 + j) * nz1 + k`, not yet oriented.
     """
     _, ny1, nz1 = node_dims
@@ -97,7 +100,10 @@ def kuhn_tets(cells: np.ndarray, node_dims) -> np.ndarray:
             path.append(corner.copy())
         paths.append(path)
     offsets = np.array(paths)                                  # (6, 4, 3)
-    nodes = cells[:, None, None, :] + offsets[None]            # (C, 6, 4, 3)
+    if mirror is None:
+        nodes = cells[:, None, None, :] + offsets[None]        # (C, 6, 4, 3)
+    else:
+        nodes = cells[:, None, None, :] + np.where(mirror[:, None, None, :], 1 - offsets[None], offsets[None])
     index = (nodes[..., 0] * ny1 + nodes[..., 1]) * nz1 + nodes[..., 2]
     return index.reshape(-1, 4)
 
