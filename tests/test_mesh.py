@@ -61,6 +61,8 @@ def test_ball_mesh_is_symmetric_under_every_axis_reflection():
     (dict(cells=4.0), "ball cells must be an even integer"),
     (dict(cells=0), "ball cells must be an even integer"),
     (dict(center=(0.0, float("inf"), 0.0)), "ball center must be three finite coordinates in m"),
+    (dict(center=("a", 0.0, 0.0)), r"ball center must be three finite coordinates in m, got \('a', 0.0, 0.0\)"),
+    (dict(center=(0.0, 0.0)), r"got \(0.0, 0.0\)"),
 ])
 def test_ball_mesh_refuses_nonsense_in_one_line(kwargs, match):
     with pytest.raises(solver.MeshError, match=match):

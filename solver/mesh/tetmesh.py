@@ -246,9 +246,12 @@ def ball_mesh(radius: float = 0.1, cells: int = 4, center=(0.0, 0.0, 0.0)) -> Te
         raise MeshError(f"ball radius must be a positive length in m, got {radius!r}")
     if isinstance(cells, bool) or not isinstance(cells, numbers.Integral) or cells < 2 or cells % 2:
         raise MeshError(f"ball cells must be an even integer >= 2 (cells per diameter), got {cells!r}")
-    center = np.asarray(center, dtype=np.float64)
-    if center.shape != (3,) or not np.isfinite(center).all():
-        raise MeshError(f"ball center must be three finite coordinates in m, got {np.asarray(center).tolist()}")
+    try:
+        point = np.asarray(center, dtype=np.float64)
+    except (TypeError, ValueError):
+        point = None
+    if point is None or point.shape != (3,) or not np.isfinite(point).all():
+        raise MeshError(f"ball center must be three finite coordinates in m, got {center!r}")
     axis = np.linspace(-1.0, 1.0, cells + 1)
     p = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
     cell_ijk = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -258,7 +261,7 @@ def ball_mesh(radius: float = 0.1, cells: int = 4, center=(0.0, 0.0, 0.0)) -> Te
     c2 = c * c
     sphere = c * np.sqrt(1 - (np.roll(c2, 1, axis=1) + np.roll(c2, 2, axis=1)) / 2
                          + np.roll(c2, 1, axis=1) * np.roll(c2, 2, axis=1) / 3)
-    vertices = center + float(radius) * shell * sphere
+    vertices = point + float(radius) * shell * sphere
     return TetMesh(vertices, oriented_tets(vertices, tets))
 
 
