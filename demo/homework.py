@@ -25,6 +25,7 @@ This module imports nothing heavy: the graded tests read ``TASKS`` from it.
 """
 import argparse
 import ast
+import functools
 import io
 import json
 import re
@@ -289,13 +290,11 @@ def _enclosing_functions(source: str):
     return found
 
 
-def _comment_lines(text: str) -> set:
-    """Line numbers that hold only a comment."""
-    lines = set()
-    for token in tokenize.generate_tokens(io.StringIO(text).readline):
-        if token.type == tokenize.COMMENT and not token.line[:token.start[1]].strip():
-            lines.add(token.start[0])
-    return lines
+@functools.lru_cache(maxsize=256)
+def _comment_lines(text: str) -> frozenset:
+    """Line numbers that hold only a comment (cached by text: every grading splices the same files)."""
+    return frozenset(token.start[0] for token in tokenize.generate_tokens(io.StringIO(text).readline)
+                     if token.type == tokenize.COMMENT and not token.line[:token.start[1]].strip())
 
 
 def find_regions(path: Path, text: str, root: Path = REPO_ROOT):

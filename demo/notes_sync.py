@@ -31,6 +31,7 @@ any machine: floating point and threading differ between CPUs, the hash of the s
 """
 import ast
 import csv
+import functools
 import hashlib
 import io
 import json
@@ -247,8 +248,10 @@ def figure_links(notes: Path = NOTES):
 # ---------------------------------------------------------------------------------------------
 # Figures: what each was drawn from (manifest.json)
 # ---------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=1024)
 def _code_text(text: str) -> str:
-    """Python source without comments, trailing spaces and blank lines: a comment edit is not a new figure."""
+    """Python source without comments, trailing spaces and blank lines: a comment edit is not a new figure.
+    Cached by text: a check of every section reads each solver file once per section."""
     try:
         comments = [token.start for token in tokenize.generate_tokens(io.StringIO(text).readline)
                     if token.type == tokenize.COMMENT]
@@ -263,7 +266,11 @@ def _code_text(text: str) -> str:
 def _section_code(name: str, root: Path = REPO_ROOT) -> str:
     """The source of section `name` in SECTIONS_FILE with every module-level helper and constant it
     names, directly or through those helpers."""
-    text = (root / SECTIONS_FILE).read_text(encoding="utf-8")
+    return _section_code_in(name, (root / SECTIONS_FILE).read_text(encoding="utf-8"))
+
+
+@functools.lru_cache(maxsize=256)
+def _section_code_in(name: str, text: str) -> str:
     definitions = {}
     for node in ast.parse(text).body:
         if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
