@@ -57,9 +57,8 @@ def test_head_on_conserves_momentum_gains_no_energy_and_rebounds(cells_b, size_b
     assert v[:n, 0].mean() < 0 < v[n:, 0].mean(), "the bodies did not rebound"
 
 
-@pytest.mark.slow
 def test_partners_solved_in_one_colour_do_not_overshoot():
-    """The head_on scene's balls (sphere asset at resolution 5, radius 0.1 m, +-1 m/s, k = 1e3 N/m, r = 1 cm,
+    """Two balls (the sphere asset at resolution 5, radius 0.1 m; +-1 m/s, k = 1e3 N/m, r = 1 cm,
     h = 1/240 s, 20 iterations): many pairs in contact have a vertex on each side in one colour, solved
     at once. Counting such a pair's block once, each side closes the pair's gap error alone and the
     two overshoot together: the first four steps in contact landed 0.41, 0.17, 0.18 and 0.14 off the
