@@ -36,6 +36,7 @@ import sys
 import tempfile
 import textwrap
 import tokenize
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -608,22 +609,24 @@ class Grader:
 
     Nothing else of a submission is used: its conftest.py, ini files, grading/ and other files never reach
     the tree the grader runs in, and pytest runs with a clean environment (no plugin autoload, no
-    PYTEST_ADDOPTS or PYTHONPATH) from that tree.
+    PYTEST_ADDOPTS or PYTHONPATH) from that tree. Up to `jobs` such runs go at once, each in its own tree.
     """
 
-    def __init__(self, scratch: Path, root: Path = REPO_ROOT):
+    def __init__(self, scratch: Path, root: Path = REPO_ROOT, jobs: int = 1):
         self.root = root.resolve()
         self.scratch = Path(scratch)
+        self.jobs = jobs
         self.starter = self.scratch / "starter"
         generate(self.starter, root=self.root, quiet=True)
         self.pristine = {task.id: {file: (self.starter / file).read_text(encoding="utf-8") for file in _task_files(task)}
                          for task in TASKS}
         self._graded = {}        # (task, its spliced files) -> TaskGrade: the graded tests are deterministic
+        self._runs = 0
 
-    def _tree(self, task: Task, spliced: dict) -> Path:
+    def _tree(self, task: Task, spliced: dict, run: int) -> Path:
         """A fresh copy of the starter with `task`'s files `spliced` and every other task's solution:
         fresh for every run, so nothing a graded submission wrote reaches the next one."""
-        tree = self.scratch / f"task-{task.id}"
+        tree = self.scratch / f"run-{run}-{task.id}"
         shutil.rmtree(tree, ignore_errors=True)
         shutil.copytree(self.starter, tree, symlinks=True)
         for other in TASKS:
@@ -634,9 +637,16 @@ class Grader:
             (tree / file).write_text(text, encoding="utf-8")
         return tree
 
-    def _run(self, task: Task, tree: Path) -> TaskGrade:
+    def _run(self, task: Task, spliced: dict, run: int) -> TaskGrade:
+        """Grade `task` with its files `spliced`, in a fresh tree that is removed afterwards."""
+        tree = self._tree(task, spliced, run)
+        try:
+            return self._pytest(task, tree, tree.with_name(tree.name + ".json"))
+        finally:
+            shutil.rmtree(tree, ignore_errors=True)
+
+    def _pytest(self, task: Task, tree: Path, report: Path) -> TaskGrade:
         tests = sorted((tree / "grading").glob(f"test_*_{task.id}.py"))
-        report = self.scratch / f"score-{task.id}.json"
         report.unlink(missing_ok=True)
         env = {k: v for k, v in os.environ.items() if not k.startswith(("PYTHON", "PYTEST", "VBD_", "COV_"))}
         env.update(PYTEST_DISABLE_PLUGIN_AUTOLOAD="1", PYTHONDONTWRITEBYTECODE="1", VBD_GRADE_JSON=str(report))
@@ -652,63 +662,85 @@ class Grader:
             return TaskGrade(task.id, 0.0, task.points, 0, 0,
                              f"the graded tests did not run: {last[-1][:160] if last else 'no output'}")
         row = json.loads(report.read_text())["tasks"].get(task.id)
+        report.unlink()
         if row is None:
             return TaskGrade(task.id, 0.0, task.points, 0, 0, "no graded test of this task ran")
         return TaskGrade(task.id, float(row["earned"]), task.points, row["passed"], row["total"], row["reason"])
 
+    def _plan(self, submission: Path, task: Task):
+        """The TaskGrade of a submission whose task files cannot be used, else the key of its graded run:
+        (task id, its spliced files)."""
+        spliced = {}
+        try:
+            for file, names in _task_files(task).items():
+                source = submission / file
+                if not source.is_file():
+                    raise ValueError(f"{file} is missing")
+                try:
+                    text = source.read_text(encoding="utf-8")
+                except (OSError, UnicodeDecodeError) as e:
+                    raise ValueError(f"{file} cannot be read ({e})") from None
+                try:
+                    spliced[file] = splice(self.pristine[task.id][file], text, names)
+                except ValueError as e:
+                    raise ValueError(f"{file} {e}") from None
+        except ValueError as e:
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, str(e))
+        return task.id, tuple(sorted(spliced.items()))
+
+    def grade_all(self, submissions: dict, tasks=None, done=None) -> dict:
+        """{name: [TaskGrade] in task order} of each starter folder of `submissions` ({name: folder});
+        `tasks`: ids to grade (default all). Up to `jobs` graded runs at once; `done(name, grades)` is
+        called for each submission in order, as soon as it and those before it are graded."""
+        plans = {name: [self._plan(folder, task) for task in TASKS if not tasks or task.id in tasks]
+                 for name, folder in submissions.items()}
+        books = {}
+        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
+            runs = {}
+            for plan in plans.values():
+                for key in plan:
+                    if not isinstance(key, TaskGrade) and key not in self._graded and key not in runs:
+                        self._runs += 1
+                        runs[key] = pool.submit(self._run, TASKS_BY_ID[key[0]], dict(key[1]), self._runs)
+            for name, plan in plans.items():
+                for key in plan:
+                    if key in runs:
+                        self._graded[key] = runs[key].result()
+                books[name] = [key if isinstance(key, TaskGrade) else self._graded[key] for key in plan]
+                if done is not None:
+                    done(name, books[name])
+        return books
+
     def grade(self, submission: Path, tasks=None) -> list:
         """[TaskGrade] of one student's starter folder, in task order; `tasks`: ids to grade (default all)."""
-        grades = []
-        for task in TASKS:
-            if tasks and task.id not in tasks:
-                continue
-            spliced = {}
-            try:
-                for file, names in _task_files(task).items():
-                    source = submission / file
-                    if not source.is_file():
-                        raise ValueError(f"{file} is missing")
-                    try:
-                        text = source.read_text(encoding="utf-8")
-                    except (OSError, UnicodeDecodeError) as e:
-                        raise ValueError(f"{file} cannot be read ({e})") from None
-                    try:
-                        spliced[file] = splice(self.pristine[task.id][file], text, names)
-                    except ValueError as e:
-                        raise ValueError(f"{file} {e}") from None
-            except ValueError as e:
-                grades.append(TaskGrade(task.id, 0.0, task.points, 0, 0, str(e)))
-                continue
-            key = (task.id, tuple(sorted(spliced.items())))
-            if key not in self._graded:
-                self._graded[key] = self._run(task, self._tree(task, spliced))
-            grades.append(self._graded[key])
-        return grades
+        return self.grade_all({"": submission}, tasks)[""]
 
 
 def _points(value: float) -> str:
     return f"{value:.0f}" if abs(value - round(value)) < 1e-9 else f"{value:.1f}"
 
 
-def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT) -> dict:
-    """Grade a starter folder or a folder of them; print each task's points and `total: NN/100` last.
-    Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file` gets the same."""
+def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1) -> dict:
+    """Grade a starter folder or a folder of them, `jobs` graded runs at once; print each task's points and
+    `total: NN/100` last. Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file`
+    gets the same."""
     folders = submissions(Path(submission))
     book = {}
+
+    def report(name, grades):
+        if len(folders) > 1:
+            print(f"== {name}")
+        for g in grades:
+            why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
+            print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
+        earned = sum(g.earned for g in grades)
+        total = sum(g.points for g in grades)
+        print(f"total: {_points(earned)}/{total}", flush=True)
+        book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
+                      "earned": earned, "total": total}
+
     with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
-        grader = Grader(Path(scratch), root=root)
-        for name, folder in folders.items():
-            grades = grader.grade(folder, tasks)
-            if len(folders) > 1:
-                print(f"== {name}")
-            for g in grades:
-                why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
-                print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
-            earned = sum(g.earned for g in grades)
-            total = sum(g.points for g in grades)
-            print(f"total: {_points(earned)}/{total}")
-            book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
-                          "earned": earned, "total": total}
+        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=report)
     if json_file is not None:
         try:
             Path(json_file).write_text(json.dumps(book, indent=2) + "\n", encoding="utf-8")
@@ -730,8 +762,13 @@ def grade_main(argv) -> int:
                         help="also write the gradebook as JSON (default: none)")
     parser.add_argument("--task", action="append", choices=list(TASKS_BY_ID), default=None,
                         help="grade only this task (repeatable; default: all tasks)")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="N",
+                        help="graded runs at once, each a pytest process of about 170 MB (default: this machine's "
+                             "CPU count, %(default)s)")
     args = parser.parse_args(argv)
-    grade(args.submission, args.json, args.task)
+    if args.jobs < 1:
+        parser.error(f"--jobs must be 1 or more, got {args.jobs}")
+    grade(args.submission, args.json, args.task, jobs=args.jobs)
     return 0
 
 

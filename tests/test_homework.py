@@ -433,6 +433,13 @@ def test_grade_refuses_what_is_not_a_submission(tmp_path, capsys, make, match):
     assert err.count("\n") == 1 and match in err, err
 
 
+@pytest.mark.parametrize("jobs", ["0", "-2"])
+def test_grade_refuses_fewer_than_one_job(starter, capsys, jobs):
+    assert main(["homework", "grade", str(starter), "--jobs", jobs]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--jobs must be 1 or more, got {jobs}" in err, err
+
+
 def test_splice_takes_only_the_named_functions():
     pristine = "import a\n\n\n@deco\ndef f(x):\n    raise NotImplementedError\n\n\ndef g():\n    return 1\n"
     submitted = "import evil\n\n\n@other\ndef f(x):\n    y = x\n    return y\n\n\ndef g():\n    return 2\n"
@@ -454,7 +461,7 @@ def as_solution(starter: Path, folder: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def grader(tmp_path_factory):
-    return homework.Grader(tmp_path_factory.mktemp("grader"))
+    return homework.Grader(tmp_path_factory.mktemp("grader"), jobs=2)
 
 
 def earned(grades):
@@ -511,6 +518,45 @@ def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path, task, file
     assert "\n" not in grades[task].reason and len(grades[task].reason) <= 160
 
 
+def test_a_class_graded_in_parallel_runs_each_distinct_task_once_and_reports_in_order(grader, starter, tmp_path,
+                                                                                      monkeypatch):
+    """grade_all with 3 jobs: every (task, spliced files) is run once however many students share it, the
+    runs finish in any order, and each student is reported in class order with the grades a serial run
+    gives. The graded runs are stood in for by a function of the spliced text (the real ones are tested above
+    and in the slow class test)."""
+    import copy
+    import random
+    import threading
+    import time
+
+    klass = {"ann": as_solution(starter, tmp_path / "ann"), "bob": starter,
+             "cy": as_solution(starter, tmp_path / "cy")}
+    text = (klass["cy"] / BUGS[0][1]).read_text()
+    (klass["cy"] / BUGS[0][1]).write_text(text.replace(BUGS[0][2], BUGS[0][3]))
+    runs, lock, rng = [], threading.Lock(), random.Random(0)
+
+    def fake_run(self, task, spliced, run):
+        time.sleep(rng.uniform(0.0, 0.02))
+        with lock:
+            runs.append((task.id, tuple(sorted(spliced.items()))))
+        points = task.points * ("TODO" not in "".join(spliced.values())) * (BUGS[0][3] not in "".join(spliced.values()))
+        return homework.TaskGrade(task.id, float(points), task.points, 1, 1, f"run {run}")
+
+    monkeypatch.setattr(homework.Grader, "_run", fake_run)
+    books = {}
+    for jobs in (1, 3):
+        fresh = copy.copy(grader)
+        fresh._graded, fresh.jobs, runs[:] = {}, jobs, []
+        order = []
+        books[jobs] = fresh.grade_all(klass, done=lambda name, grades: order.append(name))
+        assert order == ["ann", "bob", "cy"]
+        assert len(runs) == len(set(runs)) == 2 * len(homework.TASKS) + 1      # ann's and cy's share all but one
+    earned = {jobs: {name: [g.earned for g in grades] for name, grades in book.items()} for jobs, book in books.items()}
+    assert earned[1] == earned[3]
+    assert earned[3]["ann"] == [t.points for t in homework.TASKS] and sum(earned[3]["bob"]) == 0
+    assert earned[3]["cy"] == [0.0 if t.id == BUGS[0][0] else t.points for t in homework.TASKS]
+
+
 def game(starter: Path, folder: Path) -> Path:
     """The starter with every task still a TODO, gamed: a root conftest.py that turns every test into a
     no-op, a gutted grading/ (gradelib's require a no-op, a task's tests replaced), an edited pytest.ini and
@@ -542,7 +588,7 @@ def test_a_gamed_starter_scores_0_and_a_class_gets_a_gradebook(starter, tmp_path
     run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], gamed, VBD_GRADE_JSON=str(score))
     assert json.loads(score.read_text())["earned"] == 100      # the student's own run is fooled
     book = tmp_path / "book.json"
-    result = run(["-m", "demo", "homework", "grade", str(klass), "--json", str(book)], REPO)
+    result = run(["-m", "demo", "homework", "grade", str(klass), "--json", str(book), "--jobs", "2"], REPO)
     assert result.returncode == 0, result.stderr[-2000:]
     lines = result.stdout.strip().splitlines()
     assert lines[-1] == "total: 0/100" and "== gamed" in lines and "== untouched" in lines, result.stdout
