@@ -1,4 +1,4 @@
-"""Colour maps: a sequential map for scalar fields and a palette for colour sets (RGB in [0, 1])."""
+"""Colour maps: a sequential map for scalar fields and a palette for colour sets and bodies (RGB in [0, 1])."""
 import numpy as np
 
 BODY_RGB = (0.30, 0.55, 0.85)
@@ -19,6 +19,10 @@ _PALETTE = np.array([
     [0.60, 0.35, 0.80], [0.15, 0.80, 0.80], [0.95, 0.45, 0.70], [0.55, 0.40, 0.25],
     [0.60, 0.80, 0.20], [0.20, 0.30, 0.55], [0.85, 0.85, 0.85], [0.05, 0.50, 0.45],
 ])
+
+
+# The palette's hues for bodies, blue first: no red (the ghost's colour) and no grey (held bodies).
+_BODY_HUES = np.array([1, 3, 2, 4, 5, 7, 8, 11, 6, 9])
 
 
 def normalise(values, lo, hi, log=False):
@@ -48,3 +52,16 @@ def categorical(index):
 def uniform(n, rgb=BODY_RGB):
     """The same colour for n vertices."""
     return np.tile(np.asarray(rgb, float), (n, 1))
+
+
+def per_body(bodies, pinned):
+    """(N, 3) RGB of the bodies: BODY_RGB where there is one body; where there are several, each body its
+    own hue (`_BODY_HUES` in turn, in the order of its first vertex), and a body whose every vertex is
+    pinned (fixed or kinematic, such as a box the others fall into) grey. bodies (N,) int labels, pinned (N,)
+    bool."""
+    labels, body = np.unique(np.asarray(bodies), return_inverse=True)
+    if len(labels) == 1:
+        return uniform(len(body))
+    held = np.bincount(body, weights=~np.asarray(pinned, bool), minlength=len(labels)) == 0
+    hue = _BODY_HUES[np.mod(np.cumsum(~held) - 1, len(_BODY_HUES))]
+    return categorical(np.where(held, -1, hue)[body])

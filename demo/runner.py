@@ -100,6 +100,7 @@ class PanelSim:
             kinematic_motion=panel.motion if kinematic.any() else None, keep_orientation=panel.keep_orientation,
             method=panel.method, contact=panel.contact, arch=arch)
         self.sim = solver.Simulation(**self._settings)
+        self.body_rgb = colors.per_body(self.sim.bodies, fixed | kinematic)
         self.scene_settings = self.settings
         self.rest = mesh.vertices
         self.tip = mesh.vertices[:, 0] >= mesh.vertices[:, 0].max() - 1e-9     # the far end face
@@ -419,7 +420,7 @@ class PanelSim:
             if self.scene.advance is Advance.COLOURS:
                 rgb[c >= self.colours_done] = UNSOLVED_RGB
         else:
-            rgb = colors.uniform(len(x))
+            rgb = self.body_rgb.copy()
         if self.probe is not None:
             rgb[self.probe] = PROBE_RGB
         return rgb

@@ -27,7 +27,7 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 class ColorBy(enum.Enum):
     """How vertices are coloured."""
 
-    BODY = "body"                  # one flat colour
+    BODY = "body"                  # one flat colour per body (`colors.per_body`)
     DISPLACEMENT = "displacement"  # |x - x_n| in this time step, log scale
     RESIDUAL = "residual"          # |f_i|, the per-vertex force residual, log scale
     COLOR_SETS = "colour sets"    # the parallel colour of each vertex

@@ -417,6 +417,29 @@ def test_the_sliver_scene_loads_its_mesh_without_a_warning():
         scenes.AssetMesh("assets/bunny_slivers.vtu").build()
 
 
+def test_each_body_of_a_scene_has_its_own_colour_and_a_held_body_is_grey():
+    """pile: the fixed box (five slabs, five bodies) grey, the eight balls eight different hues, none the
+    ghost's red; a scene of one body keeps the one body colour (its pinned end included)."""
+    from demo import colors
+    from demo.render import GHOST_RGB
+
+    panel = SceneRunner(scenes.get("pile")).panels[0]
+    rgb, bodies = panel.state().rgb, panel.sim.bodies
+    box = np.isin(bodies, bodies[panel.sim.fixed_mask])
+    assert len(np.unique(bodies[box])) == 5 and panel.sim.fixed_mask[box].all()
+    assert np.allclose(rgb[box], colors.FIXED_RGB)
+    hues = {b: rgb[bodies == b] for b in np.unique(bodies[~box])}
+    assert len(hues) == 8 and all(np.ptp(h, axis=0).max() == 0 for h in hues.values())
+    firsts = np.array([h[0] for h in hues.values()])
+    assert len(np.unique(firsts, axis=0)) == 8
+    assert np.abs(firsts - colors.FIXED_RGB).sum(axis=1).min() > 0.3
+    assert np.abs(firsts - GHOST_RGB).sum(axis=1).min() > 0.3
+    bar = SceneRunner(scenes.get("drop")).panels[0].state().rgb
+    assert np.allclose(bar, colors.BODY_RGB)
+    held = colors.per_body(np.array([0, 0, 2, 2]), np.array([True, False, False, False]))
+    assert np.allclose(held, colors.per_body(np.array([0, 0, 2, 2]), np.zeros(4, bool)))   # one free vertex: not held
+
+
 def test_contact_scenes_label_the_contact_count_and_the_closest_gap():
     """head_on: apart at first (nothing within the query radius), then touching after 14 steps (the balls
     close 10 cm at 2 m/s in 0.05 s = 12 steps); the label shows the solver's count and gap, a momentum
