@@ -530,9 +530,11 @@ def test_a_class_graded_in_parallel_runs_each_distinct_task_once_and_reports_in_
     import time
 
     klass = {"ann": as_solution(starter, tmp_path / "ann"), "bob": starter,
-             "cy": as_solution(starter, tmp_path / "cy")}
+             "cy": as_solution(starter, tmp_path / "cy"), "dee": as_solution(starter, tmp_path / "dee")}
     text = (klass["cy"] / BUGS[0][1]).read_text()
     (klass["cy"] / BUGS[0][1]).write_text(text.replace(BUGS[0][2], BUGS[0][3]))
+    (klass["dee"] / BUGS[0][1]).unlink()                       # force_hessian's file: gone
+    (klass["dee"] / BUGS[2][1]).write_text("def _greedy(:\n")   # coloring's: does not parse
     runs, lock, rng = [], threading.Lock(), random.Random(0)
 
     def fake_run(self, task, spliced, run):
@@ -549,12 +551,16 @@ def test_a_class_graded_in_parallel_runs_each_distinct_task_once_and_reports_in_
         fresh._graded, fresh.jobs, runs[:] = {}, jobs, []
         order = []
         books[jobs] = fresh.grade_all(klass, done=lambda name, grades: order.append(name))
-        assert order == ["ann", "bob", "cy"]
-        assert len(runs) == len(set(runs)) == 2 * len(homework.TASKS) + 1      # ann's and cy's share all but one
+        assert order == ["ann", "bob", "cy", "dee"]
+        assert len(runs) == len(set(runs)) == 2 * len(homework.TASKS) + 1      # cy and dee share the rest with ann
     earned = {jobs: {name: [g.earned for g in grades] for name, grades in book.items()} for jobs, book in books.items()}
     assert earned[1] == earned[3]
     assert earned[3]["ann"] == [t.points for t in homework.TASKS] and sum(earned[3]["bob"]) == 0
     assert earned[3]["cy"] == [0.0 if t.id == BUGS[0][0] else t.points for t in homework.TASKS]
+    assert earned[3]["dee"] == [0.0 if t.id in (BUGS[0][0], BUGS[2][0]) else t.points for t in homework.TASKS]
+    reasons = {g.task: g.reason for g in books[3]["dee"]}
+    assert reasons[BUGS[0][0]] == f"{BUGS[0][1]} is missing"
+    assert reasons[BUGS[2][0]].startswith(f"{BUGS[2][1]} does not parse (line 1")
 
 
 def game(starter: Path, folder: Path) -> Path:
