@@ -218,3 +218,31 @@ def test_a_pair_skipped_for_its_vertices_moves_is_beyond_the_radius():
     d = pair_geometry_np(kind, x)[0]
     assert (d[~maybe] >= r + slack).all()
     assert (~maybe).sum() > P // 4 and (maybe & (d < r + slack)).sum() > P // 4
+
+
+@pytest.mark.parametrize("serial", [True, False])
+def test_with_no_pair_the_contact_sweep_is_the_plain_sweep_within_the_bounds(serial):
+    """Two cubes 20 cm apart drifting towards each other at 1 mm per step, no gravity: no pair under the
+    query radius, so each iteration is the plain sweep with every step clamped to its bound. The clamps never
+    bind at this speed, so the steps are contact=None's (to round-off: the translation correction sums its
+    bodies in another order with contact); at 1 m per step they bind (and only slow the cubes down)."""
+    a = solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2))
+    mesh = solver.merge_meshes([a, solver.TetMesh(a.vertices + (0.3, 0.0, 0.0), a.tets)])
+    x = {}
+    for speed in (0.06, 60.0):
+        for contact in (None, solver.Contact(stiffness=1e3, radius=0.004)):
+            sim = solver.Simulation(mesh, SOFT, dt=1 / 60, gravity=(0, 0, 0), iterations=5, contact=contact)
+            if contact is not None:
+                sim._contact_stage._serial = serial
+            v = np.zeros((mesh.n_vertices, 3))
+            v[:a.n_vertices, 0] = speed
+            sim.set_velocities(v)
+            sim.step(4)
+            x[speed, contact is None] = sim.positions
+            if contact is not None:
+                assert sim.contact_count() == 0 and sim._contact_stage.detector.n_pairs == 0
+                hits = sim._contact_stage.bound_hits
+        assert (hits > 0) == (speed > 1)
+    np.testing.assert_allclose(x[0.06, False], x[0.06, True], rtol=0, atol=1e-14)
+    assert np.abs(x[60.0, False] - x[60.0, True]).max() > 1e-3
+    assert x[60.0, False][:a.n_vertices, 0].mean() < x[60.0, True][:a.n_vertices, 0].mean()

@@ -171,9 +171,10 @@ class ContactStage:
         self._due = True
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
-        """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`), refreshing first after a
-        bound hit and detecting first when stale, then the Chebyshev step of weight omega (None: none) for
-        the vertices that have not touched this step; returns the number of bound hits."""
+        """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`, or `vbd_bounded_iteration`
+        while no pair is listed), refreshing first after a bound hit and detecting first when stale, then the
+        Chebyshev step of weight omega (None: none) for the vertices that have not touched this step;
+        returns the number of bound hits."""
         if self._due:
             self.refresh(state, X)
         elif self._since_check >= self.contact.detection_interval:
@@ -189,15 +190,18 @@ class ContactStage:
             contact_sweep.list_jacobi_vertices(color_order, color_starts, d.incidence_offsets, self._jacobi,
                                                self._jacobi_count, self._color)
             self._listed = True
-        hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair, self.distance,
-                                                   d.incidence_offsets, self.live_incidence, self.live_end,
-                                                   self.near_incidence, self.near_end, self.x_det, self._moved,
-                                                   NEAR_HORIZON * c.radius, self._crossed, self.bound, self._color,
-                                                   self._target,
-                                                   self.touched, self._jacobi, self._jacobi_count, c.stiffness,
-                                                   c.radius, c.friction, c.friction_speed,
-                                                   unrolled_colors(n_colors, self._serial), dtype, self._serial,
-                                                   d.n_pairs > 0)
+        if d.n_pairs == 0:
+            hits = contact_sweep.vbd_bounded_iteration(state, mass, *adjacency, params, self.x_det, self.bound,
+                                                       unrolled_colors(n_colors, self._serial), dtype, self._serial)
+        else:
+            hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair,
+                                                       self.distance, d.incidence_offsets, self.live_incidence,
+                                                       self.live_end, self.near_incidence, self.near_end, self.x_det,
+                                                       self._moved, NEAR_HORIZON * c.radius, self._crossed,
+                                                       self.bound, self._color, self._target, self.touched,
+                                                       self._jacobi, self._jacobi_count, c.stiffness, c.radius,
+                                                       c.friction, c.friction_speed,
+                                                       unrolled_colors(n_colors, self._serial), dtype, self._serial)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)

@@ -42,8 +42,9 @@ jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pair
 jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
 friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
-buffered: whether any vertex has a pair; without, the kernel has no write loops (on the CPU a parallel
-loop costs tens of us even when empty) and is the plain sweep plus the clamp.
+While no pair is listed the iteration is `vbd_bounded_iteration` instead: the plain sweep plus the clamp,
+without the write loops (on the CPU a parallel loop costs tens of us even when empty) and with ten arrays to
+pass instead of 25 (each costs microseconds a launch).
 """
 from .._ti import ti
 
@@ -178,6 +179,20 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
     H += H_c
     if active > 0:
         touched[i] = 1
+    x_new, hit = bounded_step(state, offsets, others, adj_f, params, x_det, bound, i, k, f, H, dtype)
+    if incidence_offsets[i + 1] > incidence_offsets[i]:
+        target[i] = x_new           # a partner in this colour may still read x_i
+    else:
+        state[X, i] = x_new
+    return hit
+
+
+@ti.func
+def bounded_step(state: ti.template(), offsets: ti.template(), others: ti.template(), adj_f: ti.template(),
+                 params: ti.template(), x_det: ti.template(), bound: ti.template(), i, k, f, H, dtype: ti.template()):
+    """(x_new (3,), whether it hit the bound): the vertex i in colour slot k after its Newton step for f_i, H_i
+    (shortened by `step_limit` when the simulation keeps tets from inverting), clamped to
+    |x_new - x_det,i| <= b_i."""
     dx = newton_step(f, H, dtype)
     if params[KEEP_ORIENTATION] > 0:
         dx *= ti.cast(step_limit(state, others, adj_f, offsets, i, k, dx), dtype)
@@ -188,11 +203,7 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
     if length > bound[i]:
         x_new = x_det[i] + offset * ti.cast(bound[i] / length, dtype)
         hit = True
-    if incidence_offsets[i + 1] > incidence_offsets[i]:
-        target[i] = x_new           # a partner in this colour may still read x_i
-    else:
-        state[X, i] = x_new
-    return hit
+    return x_new, hit
 
 
 @ti.func
@@ -222,14 +233,13 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           bound: ti.types.ndarray(), color: ti.types.ndarray(), target: ti.types.ndarray(),
                           touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
-                          dtype: ti.template(), serial: ti.template(), buffered: ti.template()) -> ti.i32:
+                          dtype: ti.template(), serial: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
     serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
     else each colour is a parallel loop, followed by its writes. n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
-    if ti.static(buffered):
-        measure_moves(state, x_det, moved, horizon, crossed, serial)
+    measure_moves(state, x_det, moved, horizon, crossed, serial)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for c in range(color_starts.shape[0] - 1):
@@ -239,9 +249,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     hits += 1
-            if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon,
-                               crossed, c)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
@@ -250,9 +258,37 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     ti.atomic_add(hits, 1)
-            if ti.static(buffered):
-                apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon,
-                               crossed, c)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c)
+    return hits
+
+
+@ti.kernel
+def vbd_bounded_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
+                          offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
+                          color_starts: ti.types.ndarray(), params: ti.types.ndarray(), x_det: ti.types.ndarray(),
+                          bound: ti.types.ndarray(), n_colors: ti.template(), dtype: ti.template(),
+                          serial: ti.template()) -> ti.i32:
+    """`vbd_contact_iteration` where no pair is listed (module docstring): the plain sweep, every step clamped
+    to its bound (`bounded_step`); returns how many vertices hit their bound."""
+    hits = 0
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+        for k in range(color_starts[0], color_starts[color_starts.shape[0] - 1]):
+            i = color_order[k]
+            f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+            x_new, hit = bounded_step(state, offsets, others, adj_f, params, x_det, bound, i, k, f, H, dtype)
+            state[X, i] = x_new
+            if hit:
+                hits += 1
+    else:
+        for c in ti.static(range(n_colors)):
+            for k in range(color_starts[c], color_starts[c + 1]):
+                i = color_order[k]
+                f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
+                x_new, hit = bounded_step(state, offsets, others, adj_f, params, x_det, bound, i, k, f, H, dtype)
+                state[X, i] = x_new
+                if hit:
+                    ti.atomic_add(hits, 1)
     return hits
 
 
