@@ -694,9 +694,9 @@ class Grader:
         called for each submission in order, as soon as it and those before it are graded."""
         plans = {name: [self._plan(folder, task) for task in TASKS if not tasks or task.id in tasks]
                  for name, folder in submissions.items()}
-        books = {}
-        with ThreadPoolExecutor(max_workers=self.jobs) as pool:
-            runs = {}
+        books, runs = {}, {}
+        pool = ThreadPoolExecutor(max_workers=self.jobs)
+        try:
             for plan in plans.values():
                 for key in plan:
                     if not isinstance(key, TaskGrade) and key not in self._graded and key not in runs:
@@ -709,6 +709,8 @@ class Grader:
                 books[name] = [key if isinstance(key, TaskGrade) else self._graded[key] for key in plan]
                 if done is not None:
                     done(name, books[name])
+        finally:       # on Ctrl-C or an error, start no further run; those running finish
+            pool.shutdown(wait=True, cancel_futures=True)
         return books
 
     def grade(self, submission: Path, tasks=None) -> list:

@@ -563,6 +563,30 @@ def test_a_class_graded_in_parallel_runs_each_distinct_task_once_and_reports_in_
     assert reasons[BUGS[2][0]].startswith(f"{BUGS[2][1]} does not parse (line 1")
 
 
+def test_stopping_a_class_grading_starts_no_further_run(grader, starter, tmp_path, monkeypatch):
+    """Ctrl-C while a class is graded (here raised as the first student is reported, one job) cancels the
+    runs not yet started instead of working through the queue."""
+    import copy
+    import time
+
+    started = []
+
+    def fake_run(self, task, spliced, run):
+        started.append(run)
+        time.sleep(0.05)
+        return homework.TaskGrade(task.id, 0.0, task.points, 0, 1, "stand-in")
+
+    def interrupt(name, grades):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(homework.Grader, "_run", fake_run)
+    fresh = copy.copy(grader)
+    fresh._graded, fresh.jobs = {}, 1
+    with pytest.raises(KeyboardInterrupt):
+        fresh.grade_all({"ann": as_solution(starter, tmp_path / "ann"), "bob": starter}, done=interrupt)
+    assert len(homework.TASKS) <= len(started) <= len(homework.TASKS) + 1
+
+
 def game(starter: Path, folder: Path) -> Path:
     """The starter with every task still a TODO, gamed: a root conftest.py that turns every test into a
     no-op, a gutted grading/ (gradelib's require a no-op, a task's tests replaced), an edited pytest.ini and
