@@ -69,6 +69,18 @@ def test_ball_mesh_refuses_nonsense_in_one_line(kwargs, match):
         solver.ball_mesh(**kwargs)
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(size=(0.1, 0.0, 0.1)), r"box size must be three positive lengths, got \[0.1, 0.0, 0.1\]"),
+    (dict(cells=(2, 0, 1)), r"box cells must be three integers >= 1, got \[2, 0, 1\]"),
+    (dict(origin="abc"), "box origin must be three finite coordinates in m, got 'abc'"),
+    (dict(origin=(0.0, 0.0)), r"box origin must be three finite coordinates in m, got \(0.0, 0.0\)"),
+    (dict(origin=(0.0, float("nan"), 0.0)), "box origin must be three finite coordinates in m"),
+])
+def test_box_mesh_refuses_nonsense_in_one_line(kwargs, match):
+    with pytest.raises(solver.MeshError, match=match):
+        solver.box_mesh(**{"size": (0.1, 0.1, 0.1), "cells": (1, 1, 1), **kwargs})
+
+
 def test_boundary_faces_point_outward():
     mesh = solver.box_mesh(size=(1.0, 1.0, 1.0), cells=(3, 3, 3))
     x = mesh.vertices

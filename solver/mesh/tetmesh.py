@@ -219,8 +219,20 @@ def face_components(tets: np.ndarray) -> np.ndarray:
     return rank[labels]
 
 
+def _point(value, what: str) -> np.ndarray:
+    """value as a (3,) float64 point in m, or a one-line MeshError naming `what` and the value given."""
+    try:
+        point = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        point = None
+    if point is None or point.shape != (3,) or not np.isfinite(point).all():
+        raise MeshError(f"{what} must be three finite coordinates in m, got {value!r}")
+    return point
+
+
 def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> TetMesh:
     """A box of `size` metres starting at `origin`, with `cells` hexahedra per axis, 6 tets each."""
+    origin = _point(origin, "box origin")
     size = np.asarray(size, dtype=np.float64)
     cells = np.asarray(cells)
     if size.shape != (3,) or not np.isfinite(size).all() or (size <= 0).any():
@@ -246,12 +258,7 @@ def ball_mesh(radius: float = 0.1, cells: int = 4, center=(0.0, 0.0, 0.0)) -> Te
         raise MeshError(f"ball radius must be a positive length in m, got {radius!r}")
     if isinstance(cells, bool) or not isinstance(cells, numbers.Integral) or cells < 2 or cells % 2:
         raise MeshError(f"ball cells must be an even integer >= 2 (cells per diameter), got {cells!r}")
-    try:
-        point = np.asarray(center, dtype=np.float64)
-    except (TypeError, ValueError):
-        point = None
-    if point is None or point.shape != (3,) or not np.isfinite(point).all():
-        raise MeshError(f"ball center must be three finite coordinates in m, got {center!r}")
+    point = _point(center, "ball center")
     axis = np.linspace(-1.0, 1.0, cells + 1)
     p = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
     cell_ijk = np.stack(np.meshgrid(*[np.arange(cells)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
