@@ -627,7 +627,6 @@ class Grader:
         """A fresh copy of the starter with `task`'s files `spliced` and every other task's solution:
         fresh for every run, so nothing a graded submission wrote reaches the next one."""
         tree = self.scratch / f"run-{run}-{task.id}"
-        shutil.rmtree(tree, ignore_errors=True)
         shutil.copytree(self.starter, tree, symlinks=True)
         for other in TASKS:
             if other is not task:
