@@ -1,14 +1,14 @@
 """Contact cost: step time against active contacts, detection against one sweep, the sweep with and without contact.
 
 Four measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
-  * piles of 1, 8, 27 and 64 soft cubes (2 x 2 x 2 cells, 48 tets each) dropped into a fixed open box of
-    five slabs, friction 0.3: median step time, full detections and refreshes of the bounds per step and
-    active contacts (pairs closer than the radius) after 8 s of settling (mean_speed: the bodies' mean
-    vertex speed in m/s then; after 3 s the 64 cubes still moved at 0.03-0.05 m/s and detected about once
-    a step), against the same bodies set apart above the box with no gravity (target: at most 2x), the two
-    scenes stepped in turn (step_ratio: the median of the ratios of the steps taken in turn); and the
-    largest pile again with balls of the same width (the sphere asset voxelised at resolution 3, 114 tets
-    each) for cubes;
+  * piles of 1, 8, 27 and 64 soft balls (the sphere asset voxelised at resolution 3, 114 tets each: the
+    bodies issue 17 names) dropped into a fixed open box of five slabs, friction 0.3: median step time, full
+    detections and refreshes of the bounds per step and active contacts (pairs closer than the radius)
+    after 8 s of settling (mean_speed: the bodies' mean vertex speed in m/s then; after 3 s 64 cubes still
+    moved at 0.03-0.05 m/s and detected about once a step), against the same bodies set apart above the
+    box with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
+    ratios of the steps taken in turn); and the same piles of cubes as wide (2 x 2 x 2 cells, 48 tets
+    each), bodies that are nearly all surface;
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
     contact) on the same settled pile and on the large meshes below, the fastest of 3 interleaved timings
     of each (target: at most 1x). Set apart, the bodies are left out of the search (far from the others,
@@ -129,7 +129,7 @@ def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
     contacts = sim.contact_count()
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
-    return dict(measurement="ball pile" if balls else "pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts,
+    return dict(measurement="ball pile" if balls else "cube pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts,
                 mean_speed=mean_speed, detections_per_step=detections, refreshes_per_step=refreshes,
                 step_ms=step_s * 1e3, apart_step_ms=apart_s * 1e3, step_ratio=ratio, detect_ms=detect_s * 1e3,
                 sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
@@ -182,9 +182,8 @@ def plot(rows, path):
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
-    for name, marks in (("pile", ("o-", "s--")), ("ball pile", ("^-", "v--"))):
-        piles = [r for r in rows if r["measurement"] == name]
-        shape = "cubes" if name == "pile" else "balls"
+    for shape, marks in (("balls", ("^-", "v--")), ("cubes", ("o-", "s--"))):
+        piles = [r for r in rows if r["measurement"] == f"{shape[:-1]} pile"]
         a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], marks[0], label=f"pile of {shape}")
         a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], marks[1],
                label=f"same {shape} apart")
@@ -222,9 +221,9 @@ def main(argv=None):
     import solver
 
     rows = []
-    for k in progress(piles, desc="piles", disable=args.no_progress):
-        rows.append(measure_pile(solver, k, settle, steps, min_seconds))
-    rows.append(measure_pile(solver, piles[-1], settle, steps, min_seconds, balls=True))
+    for balls in (True, False):
+        for k in progress(piles, desc="ball piles" if balls else "cube piles", disable=args.no_progress):
+            rows.append(measure_pile(solver, k, settle, steps, min_seconds, balls=balls))
     rows.append(measure_apart(solver, cells, min_seconds))
     rows.append(measure_touching(solver, cells, min_seconds))
     text = table(rows, COLUMNS, title="Contact cost (float64, CPU; ratios within this run)")

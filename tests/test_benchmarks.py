@@ -94,13 +94,13 @@ def test_stability_quick(tmp_path):
 def test_contact_quick(tmp_path):
     run_quick("contact", tmp_path)
     data = rows(tmp_path / "contact.csv")
-    piles = [r for r in data if r["measurement"] == "pile"]
-    assert [int(r["bodies"]) for r in piles] == [1, 8]
-    assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
-    assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
-    (balls,) = [r for r in data if r["measurement"] == "ball pile"]
-    assert int(balls["bodies"]) == 8 and int(balls["tets"]) > int(piles[1]["tets"]) and int(balls["contacts"]) > 0
-    piles.append(balls)
+    balls, cubes = ([r for r in data if r["measurement"] == f"{shape} pile"] for shape in ("ball", "cube"))
+    for piles in (balls, cubes):
+        assert [int(r["bodies"]) for r in piles] == [1, 8]
+        assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
+        assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
+    assert int(balls[1]["tets"]) > int(cubes[1]["tets"])
+    piles = balls + cubes
     (apart,) = [r for r in data if r["measurement"].startswith("apart")]
     assert int(apart["contacts"]) == 0, "bodies set apart have no pair closer than the radius"
     (touching,) = [r for r in data if r["measurement"].startswith("touching")]

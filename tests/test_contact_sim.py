@@ -1,6 +1,9 @@
 """Contact in the simulation (issue 17, stage 4): the VBD sweep with contact, judged by physics (momentum,
 kinetic energy, rebound), by an independent numpy crossing checker every step, and against the numpy
 Newton reference with contact; bad input in one line."""
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -150,6 +153,53 @@ def test_converged_vbd_matches_newton_reference_with_contact():
     assert sim.energy() == pytest.approx(problem.energy(x), rel=1e-10)
     g = problem.gradient(x)
     np.testing.assert_allclose(sim.residual(), -g, rtol=0, atol=1e-9 * np.abs(g).max())
+
+
+@pytest.mark.slow
+def test_first_contact_compiles_no_kernel(arch):
+    """Two cubes drift into each other: once the first step has run, no kernel compiles any more, also when
+    the first pair appears (the contact kernels are compiled with the Simulation, `compile_sweeps`). In a
+    fresh process, as kernels are compiled once per process. Compiles are counted at Taichi's
+    `Kernel.materialize`, where a kernel is compiled for arguments it has not met."""
+    code = f"""
+import json
+import numpy as np
+import solver
+from taichi.lang import kernel_impl
+
+compiled = []
+materialize = kernel_impl.Kernel.materialize
+
+
+def counted(self, key=None, args=None, arg_features=None):
+    if key not in self.compiled_kernels:
+        compiled.append(self.func.__name__)
+    return materialize(self, key, args, arg_features)
+
+
+kernel_impl.Kernel.materialize = counted
+a = solver.box_mesh(size=(0.1,) * 3, cells=(1, 1, 1))
+b = solver.box_mesh(size=(0.1,) * 3, cells=(1, 1, 1), origin=(0.13, 0.0, 0.0))
+sim = solver.Simulation(solver.merge_meshes([a, b]), solver.Material(1e5, 0.3, 1000.0), gravity=(0, 0, 0),
+                        iterations=5, contact=solver.Contact(stiffness=1e4, radius=0.004), arch={arch!r})
+v = np.zeros((16, 3))
+v[:8, 0], v[8:, 0] = 0.5, -0.5
+sim.set_velocities(v)
+sim.step()
+compiled.clear()
+steps = 0
+while sim.contact_count() == 0 and steps < 30:
+    sim.step()
+    steps += 1
+contacts = sim.contact_count()
+sim.step(3)
+print(json.dumps(dict(steps=steps, contacts=contacts, compiled=compiled)))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert 1 <= result["steps"] < 30 and result["contacts"] > 0, result
+    assert result["compiled"] == [], result
 
 
 def test_bad_contact_input_is_one_line():

@@ -48,7 +48,7 @@ from ..errors import ConfigError
 from ..physics.contact import Contact
 from ..physics.contact_detection import ContactDetector
 from . import contact_sweep
-from .layout import X, X_N
+from .layout import STATE_ROWS, X, X_N
 from .vertex_solve import serial_sweep, unrolled_colors
 
 COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
@@ -95,7 +95,8 @@ class ContactStage:
         self._color.from_numpy(np.full(n, -1, dtype=np.int32))
         self._target = ti.Vector.ndarray(3, dtype, n)
         self.touched = ti.ndarray(ti.i32, n)
-        self._serial = serial_sweep(mesh.n_tets, running_on_cpu())
+        self._cpu = running_on_cpu()
+        self._serial = serial_sweep(mesh.n_tets, self._cpu)
         self._jacobi = None             # the vertices of each colour that have pairs (set at the first iteration)
         self._jacobi_count = None
         self._listed = False            # whether they are those of the last detection
@@ -170,6 +171,35 @@ class ContactStage:
             self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
         self._due = True
 
+    def compile_sweeps(self, mass, adjacency, params, n_colors: int) -> None:
+        """Compile now the kernels a run may first launch long after its first step (the contact iteration
+        once pairs appear, the bounded one while none is listed, the refresh at x_n and the clamp of the
+        guess), so that the first contact does not stall the run while they compile (about 0.6 s with
+        Taichi's offline cache, seconds without). Each is launched on a one-vertex scratch problem with no
+        colour to solve, with the argument types and compile-time constants of this simulation's launches:
+        nothing of the simulation is read or written."""
+        color_order, offsets, others, adj_f, color_starts = adjacency
+        dtype, unrolled = self.dtype, unrolled_colors(n_colors, self._serial)
+        state = ti.Vector.ndarray(3, dtype, (STATE_ROWS, 1))
+        vector, number = ti.Vector.ndarray(3, dtype, 1), ti.ndarray(dtype, 1)
+        flag, slots = ti.ndarray(ti.i32, 1), ti.ndarray(ti.i32, 2)
+        no_colors = ti.ndarray(ti.i32, color_starts.shape[0])     # every colour empty
+        no_jacobi = ti.ndarray(ti.i32, n_colors)
+        for array in (state, vector, number, flag, slots, no_colors, no_jacobi):
+            array.fill(0)
+        pair = ti.Vector.ndarray(4, ti.i32, 1)
+        pair.fill(0)
+        contact_sweep.vbd_contact_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, flag,
+                                            pair, number, slots, flag, flag, flag, flag, vector, number, 0.0, flag,
+                                            number, flag, vector, flag, flag, no_jacobi, 1.0, 1.0, 0.0, 1.0, unrolled,
+                                            dtype, self._serial, self._cpu)
+        contact_sweep.vbd_bounded_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, vector,
+                                            number, unrolled, dtype, self._serial)
+        contact_sweep.refresh_bounds(state, X, vector, flag, pair, 0, slots, flag, 1.0, 0.5, 0.25, number, flag,
+                                     number, vector, number, number, flag, flag, flag, flag, flag, 0.0, flag, dtype,
+                                     self._serial, False)
+        contact_sweep.clamp_to_bounds(state, flag, vector, number, dtype)
+
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`, or `vbd_bounded_iteration`
         while no pair is listed), refreshing first after a bound hit and detecting first when stale, then the
@@ -201,7 +231,8 @@ class ContactStage:
                                                        self.bound, self._color, self._target, self.touched,
                                                        self._jacobi, self._jacobi_count, c.stiffness, c.radius,
                                                        c.friction, c.friction_speed,
-                                                       unrolled_colors(n_colors, self._serial), dtype, self._serial)
+                                                       unrolled_colors(n_colors, self._serial), dtype, self._serial,
+                                                       self._cpu)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
                                                          omega, dtype)

@@ -209,10 +209,11 @@ def bounded_step(state: ti.template(), offsets: ti.template(), others: ti.templa
 @ti.func
 def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
                    jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(),
-                   horizon, crossed: ti.template(), c):
+                   horizon, crossed: ti.template(), c, serial: ti.template()):
     """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), their
     moved[i] = |x_i - x_det,i| (only vertices with pairs are read there), and crossed[0] = 1 where one has
-    moved farther than the horizon (m)."""
+    moved farther than the horizon (m). serial: in one loop on one thread."""
+    ti.loop_config(serialize=serial)
     for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
         i = jacobi[j]
         state[X, i] = target[i]
@@ -233,10 +234,12 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           bound: ti.types.ndarray(), color: ti.types.ndarray(), target: ti.types.ndarray(),
                           touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
-                          dtype: ti.template(), serial: ti.template()) -> ti.i32:
+                          dtype: ti.template(), serial: ti.template(), cpu: ti.template()) -> ti.i32:
     """One VBD iteration with contact (module docstring); returns how many vertices hit their bound.
     serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
-    else each colour is a parallel loop, followed by its writes. n_colors: `vertex_solve.unrolled_colors`."""
+    else each colour is a parallel loop, followed by its writes, on one thread on the CPU (cpu), where
+    starting a parallel loop costs more than the writes of a colour's vertices with pairs (30 against
+    about 5 us in a settled pile of 64 balls). n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     measure_moves(state, x_det, moved, horizon, crossed, serial)
@@ -249,7 +252,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     hits += 1
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, True)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
@@ -258,7 +261,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     ti.atomic_add(hits, 1)
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, cpu)
     return hits
 
 
