@@ -246,3 +246,32 @@ def test_with_no_pair_the_contact_sweep_is_the_plain_sweep_within_the_bounds(ser
     np.testing.assert_allclose(x[0.06, False], x[0.06, True], rtol=0, atol=1e-14)
     assert np.abs(x[60.0, False] - x[60.0, True]).max() > 1e-3
     assert x[60.0, False][:a.n_vertices, 0].mean() < x[60.0, True][:a.n_vertices, 0].mean()
+
+
+def test_the_contact_count_and_closest_gap_at_one_set_of_positions_detect_once():
+    """contact_count(), min_separation() and energy() at the positions of the last full detection reuse its
+    pairs (detection is deterministic); once the positions move they detect again. Both numbers are judged
+    against the numpy twin's pairs (scipy's k-d tree) at the positions of the moment."""
+    a, b = (solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=o) for o in ((0, 0, 0), (0.103, 0.01, 0.0)))
+    mesh = solver.merge_meshes([a, b])
+    contact = solver.Contact(stiffness=1e4, radius=0.004)
+    sim = solver.Simulation(mesh, SOFT, dt=1 / 60, gravity=(0, 0, 0), iterations=5, contact=contact)
+    v = np.zeros((mesh.n_vertices, 3))
+    v[:a.n_vertices, 0] = 0.06
+    sim.set_velocities(v)
+    stage = sim._contact_stage
+    surface, bodies = stage.detector.surface, stage.bodies
+    excluded = rest_exclusions_np(mesh.vertices, surface, bodies, contact)
+    free = np.ones(mesh.n_vertices, bool)
+    counts = []
+    for step in range(3):
+        detections = stage.detections
+        count, gap, energy = sim.contact_count(), sim.min_separation(), sim.energy()
+        assert stage.detections == detections + (step > 0)    # construction detected at the start positions
+        _, _, _, distance = find_pairs_np(sim.positions, surface, bodies, free, contact, excluded)
+        assert count == np.count_nonzero(distance < contact.radius)
+        assert gap == pytest.approx(distance.min(), rel=1e-12)
+        assert sim.energy() == energy and stage.detections == detections + (step > 0)
+        counts.append(count)
+        sim.step()
+    assert counts[0] > 0 and len(set(counts)) > 1, counts

@@ -173,11 +173,11 @@ class ContactStage:
 
     def compile_sweeps(self, mass, adjacency, params, n_colors: int) -> None:
         """Compile now the kernels a run may first launch long after its first step (the contact iteration
-        once pairs appear, the bounded one while none is listed, the refresh at x_n and the clamp of the
-        guess), so that the first contact does not stall the run while they compile (about 0.6 s with
-        Taichi's offline cache, seconds without). Each is launched on a one-vertex scratch problem with no
-        colour to solve, with the argument types and compile-time constants of this simulation's launches:
-        nothing of the simulation is read or written."""
+        once pairs appear, the bounded one while none is listed, the refresh at x_n, the clamp of the guess
+        and the check for a move since the last detection), so that the first contact does not stall the
+        run while they compile (about 0.6 s with Taichi's offline cache, seconds without). Each is launched
+        on a one-vertex scratch problem with no colour to solve, with the argument types and compile-time
+        constants of this simulation's launches: nothing of the simulation is read or written."""
         color_order, offsets, others, adj_f, color_starts = adjacency
         dtype, unrolled = self.dtype, unrolled_colors(n_colors, self._serial)
         state = ti.Vector.ndarray(3, dtype, (STATE_ROWS, 1))
@@ -199,6 +199,7 @@ class ContactStage:
                                      number, vector, number, number, flag, flag, flag, flag, flag, 0.0, flag, dtype,
                                      self._serial, False)
         contact_sweep.clamp_to_bounds(state, flag, vector, number, dtype)
+        contact_sweep.largest_move(state, X, vector)
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`, or `vbd_bounded_iteration`
@@ -241,9 +242,16 @@ class ContactStage:
         self.bound_hits += hits
         return hits
 
+    def _detect_here(self, state) -> None:
+        """Make the detector's pairs those at the current positions: a full detection there, unless the last
+        one was made at exactly these positions (it would find the same pairs: detection is deterministic),
+        so that asking for the contact count and then the closest gap detects once."""
+        if contact_sweep.largest_move(state, X, self.x_full) != 0:
+            self.detect(state, X)
+
     def energy(self, state, dtype) -> float:
         """E_c in J at the current positions (detected there)."""
-        self.detect(state, X)
+        self._detect_here(state)
         d = self.detector
         return float(contact_sweep.contact_energy(state, d.kind, d.pair, d.n_pairs, self.contact.stiffness,
                                                   self.contact.radius, dtype))
@@ -262,8 +270,8 @@ class ContactStage:
 
     def distances(self, state) -> np.ndarray:
         """(P,) distances in m of the pairs under query_radius at the current positions."""
-        self.detect(state, X)
-        return self.detector.pairs()[3].astype(np.float64)
+        self._detect_here(state)
+        return self.detector.distance.to_numpy()[:self.detector.n_pairs].astype(np.float64)
 
     def count(self, state) -> int:
         """Pairs closer than the radius at the current positions."""
