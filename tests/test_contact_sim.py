@@ -156,10 +156,12 @@ def test_converged_vbd_matches_newton_reference_with_contact():
 
 
 @pytest.mark.slow
-def test_first_contact_compiles_no_kernel(arch):
+@pytest.mark.parametrize("method", ["vbd", "newton"])
+def test_first_contact_compiles_no_kernel(arch, method):
     """Two cubes drift into each other: once the first step has run, no kernel compiles any more, also when
-    the first pair appears (the contact kernels are compiled with the Simulation, `compile_sweeps`). In a
-    fresh process, as kernels are compiled once per process. Compiles are counted at Taichi's
+    the first pair appears (the contact kernels are compiled before: `ContactStage.compile_kernels`, and for
+    Newton's Hessian `ContactPairs._compile_blocks`). In a fresh process, as kernels are compiled once per
+    process. Compiles are counted at Taichi's
     `Kernel.materialize`, where a kernel is compiled for arguments it has not met."""
     code = f"""
 import json
@@ -181,7 +183,8 @@ kernel_impl.Kernel.materialize = counted
 a = solver.box_mesh(size=(0.1,) * 3, cells=(1, 1, 1))
 b = solver.box_mesh(size=(0.1,) * 3, cells=(1, 1, 1), origin=(0.13, 0.0, 0.0))
 sim = solver.Simulation(solver.merge_meshes([a, b]), solver.Material(1e5, 0.3, 1000.0), gravity=(0, 0, 0),
-                        iterations=5, contact=solver.Contact(stiffness=1e4, radius=0.004), arch={arch!r})
+                        iterations=5, contact=solver.Contact(stiffness=1e4, radius=0.004), arch={arch!r},
+                        method={method!r})
 v = np.zeros((16, 3))
 v[:8, 0], v[8:, 0] = 0.5, -0.5
 sim.set_velocities(v)

@@ -171,13 +171,14 @@ class ContactStage:
             self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
         self._due = True
 
-    def compile_sweeps(self, mass, adjacency, params, n_colors: int) -> None:
-        """Compile now the kernels a run may first launch long after its first step (the contact iteration
-        once pairs appear, the bounded one while none is listed, the refresh at x_n, the clamp of the guess
-        and the check for a move since the last detection), so that the first contact does not stall the
-        run while they compile (about 0.6 s with Taichi's offline cache, seconds without). Each is launched
-        on a one-vertex scratch problem with no colour to solve, with the argument types and compile-time
-        constants of this simulation's launches: nothing of the simulation is read or written."""
+    def compile_kernels(self, mass, adjacency, params, n_colors: int, sweeps: bool) -> None:
+        """Compile now the kernels a run may first launch long after its first step, so that the first
+        contact does not stall the run while they compile (about 0.6 s with Taichi's offline cache, seconds
+        without): the check for a move since the last detection (`_detect_here`) and, with sweeps (VBD),
+        the contact iteration (once pairs appear), the bounded one (while none is listed), the refresh at x_n
+        and the clamp of the guess. Each is launched on a one-vertex scratch problem with no colour to
+        solve, with the argument types and compile-time constants of this simulation's launches: nothing of
+        the simulation is read or written."""
         color_order, offsets, others, adj_f, color_starts = adjacency
         dtype, unrolled = self.dtype, unrolled_colors(n_colors, self._serial)
         state = ti.Vector.ndarray(3, dtype, (STATE_ROWS, 1))
@@ -185,10 +186,12 @@ class ContactStage:
         flag, slots = ti.ndarray(ti.i32, 1), ti.ndarray(ti.i32, 2)
         no_colors = ti.ndarray(ti.i32, color_starts.shape[0])     # every colour empty
         no_jacobi = ti.ndarray(ti.i32, n_colors)
-        for array in (state, vector, number, flag, slots, no_colors, no_jacobi):
-            array.fill(0)
         pair = ti.Vector.ndarray(4, ti.i32, 1)
-        pair.fill(0)
+        for array in (state, vector, number, flag, slots, no_colors, no_jacobi, pair):
+            array.fill(0)
+        contact_sweep.largest_move(state, X, vector)
+        if not sweeps:
+            return
         contact_sweep.vbd_contact_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, flag,
                                             pair, number, slots, flag, flag, flag, flag, vector, number, 0.0, flag,
                                             number, flag, vector, flag, flag, no_jacobi, 1.0, 1.0, 0.0, 1.0, unrolled,
@@ -199,7 +202,6 @@ class ContactStage:
                                      number, vector, number, number, flag, flag, flag, flag, flag, 0.0, flag, dtype,
                                      self._serial, False)
         contact_sweep.clamp_to_bounds(state, flag, vector, number, dtype)
-        contact_sweep.largest_move(state, X, vector)
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`, or `vbd_bounded_iteration`
@@ -246,7 +248,8 @@ class ContactStage:
         """Make the detector's pairs those at the current positions: a full detection there, unless the last
         one was made at exactly these positions (it would find the same pairs: detection is deterministic),
         so that asking for the contact count and then the closest gap detects once."""
-        if contact_sweep.largest_move(state, X, self.x_full) != 0:
+        moved = contact_sweep.largest_move(state, X, self.x_full)
+        if moved != 0 or self.detections == 0:
             self.detect(state, X)
 
     def energy(self, state, dtype) -> float:

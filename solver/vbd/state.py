@@ -203,8 +203,8 @@ class SimulationState:
         stage = None if value is None else ContactStage(self.mesh, self.free_mask, value, self.dtype)
         if stage is not None:
             stage.check_apart(self.state, self.positions)
-            if self.method is Method.VBD:
-                stage.compile_sweeps(self._mass, self._adjacency, self._params, self.n_colors)
+            stage.compile_kernels(self._mass, self._adjacency, self._params, self.n_colors,
+                                  sweeps=self.method is Method.VBD)
         self._contact, self._contact_stage = value, stage
         self._newton_contact = None         # the contact term of the StepProblems, built on first use
 
