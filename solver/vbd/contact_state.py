@@ -248,8 +248,7 @@ class ContactStage:
         """Make the detector's pairs those at the current positions: a full detection there, unless the last
         one was made at exactly these positions (it would find the same pairs: detection is deterministic),
         so that asking for the contact count and then the closest gap detects once."""
-        moved = contact_sweep.largest_move(state, X, self.x_full)
-        if moved != 0 or self.detections == 0:
+        if contact_sweep.largest_move(state, X, self.x_full) != 0:
             self.detect(state, X)
 
     def energy(self, state, dtype) -> float:

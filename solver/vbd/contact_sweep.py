@@ -239,7 +239,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
     serial: one loop over the colours on one CPU thread (one copy of the vertex solve to compile);
     else each colour is a parallel loop, followed by its writes, on one thread on the CPU (cpu), where
     starting a parallel loop costs more than the writes of a colour's vertices with pairs (30 against
-    about 5 us in a settled pile of 64 balls). n_colors: `vertex_solve.unrolled_colors`."""
+    9 us in a settled pile of 64 balls). n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
     measure_moves(state, x_det, moved, horizon, crossed, serial)
