@@ -113,6 +113,27 @@ def test_contact_quick(tmp_path):
     assert (tmp_path / "contact.png").stat().st_size > 0
 
 
+@pytest.mark.slow
+@pytest.mark.backend
+def test_newton_contact_quick(tmp_path):
+    """head_on's first 22 steps: with the exact pair Hessians no Newton solve reaches the cap and they take
+    fewer iterations in all than with the PSD parts only; solves that converge reach the same solution."""
+    run_quick("newton_contact", tmp_path)
+    data = rows(tmp_path / "newton_contact.csv")
+    for kind in {r["linear_solver"] for r in data}:
+        exact, psd = ([r for r in data if r["linear_solver"] == kind and r["pair_hessian"] == h]
+                      for h in ("exact", "psd"))
+        assert len(exact) == len(psd) == 22
+        assert any(int(r["contacts"]) > 0 for r in exact), "the balls meet within the quick run"
+        assert all(r["converged"] == "True" for r in exact)
+        assert sum(int(r["iterations"]) for r in exact) < 0.75 * sum(int(r["iterations"]) for r in psd)
+        assert all(int(r["evaluations"]) > int(r["iterations"]) for r in exact)
+        for r in psd:
+            if r["converged"] == "True":
+                assert float(r["x_vs_exact"]) < 1e-2
+    assert (tmp_path / "newton_contact.png").stat().st_size > 0
+
+
 def test_provenance_names_the_commit_and_says_when_the_code_was_edited(tmp_path):
     """A results file names the commit it was measured on; edited code makes that a lie unless said. New
     results beside it (benchmarks/results) are not an edit."""
@@ -234,7 +255,7 @@ def test_stress_cell_recovers_rest_shape(stress_runner, state):
 # Output folders and arguments: quick runs never touch the committed results, nothing is replaced
 # without --overwrite, bad values end in one line. Only argument handling runs here, no benchmark.
 # ---------------------------------------------------------------------------------------------
-SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed", "contact")
+SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed", "contact", "newton_contact")
 
 
 def _module(name):
@@ -292,6 +313,7 @@ def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match)
     ("stability", ["--steps", "x"], "expected a positive whole number"),
     ("skip", ["--min-seconds", "nan"], "expected a positive number"),
     ("contact", ["--steps", "0"], "expected a positive whole number"),
+    ("newton_contact", ["--frames", "-3"], "expected a positive whole number"),
     ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
     ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
 ])

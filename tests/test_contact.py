@@ -67,7 +67,7 @@ def _evaluate(kind: ti.types.ndarray(), X: ti.types.ndarray(), X_n: ti.types.nda
               mu: ti.f64, eps_u: ti.f64, d_out: ti.types.ndarray(), w_out: ti.types.ndarray(),
               energy: ti.types.ndarray(), force: ti.types.ndarray(), block: ti.types.ndarray(),
               friction: ti.types.ndarray(), friction_block: ti.types.ndarray(), gradient: ti.types.ndarray(),
-              hessian: ti.types.ndarray()):
+              hessian: ti.types.ndarray(), exact_hessian: ti.types.ndarray()):
     for p in range(kind.shape[0]):
         d, w, n = C.pair_geometry(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], ti.f64)
         d_out[p] = d
@@ -80,11 +80,13 @@ def _evaluate(kind: ti.types.ndarray(), X: ti.types.ndarray(), X_n: ti.types.nda
             force[p, j], block[p, j] = C.contact_force_hessian(d, w[j], n, k, r)
             friction[p, j], friction_block[p, j] = C.contact_friction(u, n, w[j], ti.abs(db), mu, eps_u, ti.f64)
         b, g, H = C.pair_gradient_hessian(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, ti.f64)
+        H_exact = C.pair_hessian(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, 1, ti.f64)
         energy[p] = b
         for a in ti.static(range(12)):
             gradient[p, a] = g[a]
             for c in ti.static(range(12)):
                 hessian[p, a, c] = H[a, c]
+                exact_hessian[p, a, c] = H_exact[a, c]
 
 
 def taichi_twin(kind, X, X_n, contact, h):
@@ -99,7 +101,8 @@ def taichi_twin(kind, X, X_n, contact, h):
     args["X_n"].from_numpy(np.asarray(X_n, dtype=np.float64))
     out = dict(d_out=ti.ndarray(ti.f64, P), w_out=ti.ndarray(ti.f64, (P, 4)), energy=ti.ndarray(ti.f64, P),
                force=vec((P, 4)), block=mat((P, 4)), friction=vec((P, 4)), friction_block=mat((P, 4)),
-               gradient=ti.ndarray(ti.f64, (P, 12)), hessian=ti.ndarray(ti.f64, (P, 12, 12)))
+               gradient=ti.ndarray(ti.f64, (P, 12)), hessian=ti.ndarray(ti.f64, (P, 12, 12)),
+               exact_hessian=ti.ndarray(ti.f64, (P, 12, 12)))
     _evaluate(args["kind"], args["X"], args["X_n"], contact.stiffness, contact.radius, contact.friction,
               contact.friction_speed * h, **out)
     return {name: a.to_numpy() for name, a in out.items()}
@@ -224,6 +227,51 @@ def test_barrier_is_c2_at_half_radius_and_vanishes_beyond_radius():
                                      - C.barrier_derivatives_np(d - h, k, r)[0]) / (2 * h), rtol=1e-6)
 
 
+def _fd_hessian(kind, X, eps):
+    """d2E/dX2 (12, 12) by central differences of the numpy forces."""
+    H = np.zeros((12, 12))
+    for a in range(12):
+        Xp, Xm = X.copy().reshape(12), X.copy().reshape(12)
+        Xp[a] += eps
+        Xm[a] -= eps
+        forces = C.pair_forces_np(np.array([kind, kind]), np.stack([Xp, Xm]).reshape(2, 4, 3), CONTACT)
+        H[:, a] = -(forces[0] - forces[1]).ravel() / (2 * eps)
+    return H
+
+
+def _near_parallel_edges(degrees, d):
+    """Overlapping edges d apart whose directions differ by `degrees`: the closest points inside both."""
+    th = np.radians(degrees)
+    return EE, np.array([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.05, -0.1 * np.sin(th), d],
+                         [0.05 + 0.2 * np.cos(th), 0.1 * np.sin(th), d]])
+
+
+def test_exact_pair_hessian_matches_finite_differences():
+    """b''(d) J J^T + b'(d) d2d/dx2 is the Hessian of the pair energy for 0, 1 and 2 free closest-point
+    parameters (vertex, edge, face; endpoint, edge, both edges), in both stages, and for edges 1 and 0.1
+    degrees from parallel, where the curvature term is thousands of times the PSD part."""
+    rng = np.random.default_rng(5)
+    kind, X = _random_pairs(rng, 300)
+    d, w, _ = C.pair_geometry_np(kind, X)
+    keep = (d > 1e-3) & (np.abs(d - CONTACT.radius / 2) > 1e-4) & (d < CONTACT.radius - 1e-4)
+    kind, X = kind[keep], X[keep]
+    _, m = C.free_directions_np(kind, C.pair_geometry_np(kind, X)[1])
+    for k in (VT, EE):
+        assert np.bincount(m[kind == k], minlength=3).min() >= 10       # every case of the formula is checked
+    cases = [c for dist in (0.02, 0.07) for name, c in _cases(dist).items()
+             if name != "ee_end"]       # ee_end's closest point sits exactly where t leaves (0, 1): a kink
+    cases += [_near_parallel_edges(deg, dist) for deg in (1.0, 0.1) for dist in (0.03, 0.07)]
+    kind = np.concatenate([kind, [c[0] for c in cases]])
+    X = np.concatenate([X, np.stack([c[1] for c in cases])])
+    H = C.pair_hessian_np(kind, X, CONTACT, exact=True)
+    np.testing.assert_allclose(H, H.transpose(0, 2, 1), rtol=0, atol=1e-12 * np.abs(H).max())
+    for p in range(len(kind)):
+        fd = _fd_hessian(kind[p], X[p], 1e-7)
+        assert np.linalg.norm(H[p] - fd) <= 1e-6 * np.linalg.norm(fd), (p, kind[p])
+    psd = C.pair_hessian_np(kind, X, CONTACT)
+    assert np.linalg.norm(H[-2]) > 1e3 * np.linalg.norm(psd[-2])      # 0.1 degrees, d = 0.03
+
+
 def test_blocks_and_pair_hessian_are_psd_and_consistent():
     rng = np.random.default_rng(7)
     kind, X = _random_pairs(rng, 200)
@@ -264,6 +312,9 @@ def test_taichi_funcs_agree_with_numpy_twins():
     np.testing.assert_allclose(got["gradient"], -forces.reshape(-1, 12), rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(got["block"], C.pair_blocks_np(kind, X, contact), rtol=1e-10, atol=1e-6)
     np.testing.assert_allclose(got["hessian"], C.pair_hessian_np(kind, X, contact), rtol=1e-10, atol=1e-6)
+    exact = C.pair_hessian_np(kind, X, contact, exact=True)
+    scale = np.abs(exact).max(axis=(1, 2), keepdims=True)          # per pair: the curvature term spans decades
+    assert (np.abs(got["exact_hessian"] - exact) <= 1e-10 * scale + 1e-9).all()
     f_fric, H_fric = C.pair_friction_np(kind, X, X_n, contact, h)
     np.testing.assert_allclose(got["friction"], f_fric, rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(got["friction_block"], H_fric, rtol=1e-10, atol=1e-6)

@@ -8,7 +8,7 @@ import solver
 from solver.newton.direct import GlobalNewton, LinearSolver, fast_newton_solve
 from solver.newton.hessian import StepKernels
 from solver.newton.oracle import newton_solve
-from solver.physics.contact import contact_hessian_np
+from solver.physics.contact import contact_hessian_np, pair_hessian_np
 from tests.contact_checks import crossings
 
 pytestmark = pytest.mark.backend
@@ -105,7 +105,7 @@ def test_pair_blocks_and_gradient_match_the_numpy_twins():
     # the Hessian with the pair blocks: the oracle's (PSD Gauss-Newton pair blocks, n held fixed), free dofs
     free_dofs = np.flatnonzero(np.repeat(problem.free, 3))
     pattern, _ = newton.coupled_system(contact, x)
-    contact.write_blocks(x, pattern, True)
+    contact.write_blocks(x, pattern, True, False)
     H = kernels.hessian(x, True, True, pattern).toarray()
     H_np = problem.hessian(x)[free_dofs][:, free_dofs].toarray()
     np.testing.assert_allclose(H, H_np, rtol=0, atol=1e-9 * np.abs(H_np).max())
@@ -114,6 +114,18 @@ def test_pair_blocks_and_gradient_match_the_numpy_twins():
     blocks_np = contact_hessian_np(x, kind, vertices, CONTACT)[free_dofs][:, free_dofs].toarray()
     assert np.abs(blocks_np).max() > 0
     np.testing.assert_allclose(blocks, blocks_np, rtol=0, atol=1e-9 * np.abs(blocks_np).max())
+    # exact pair blocks (the Newton's trusted steps): the numpy twin's curvature b'(d) d2d/dx2 on top
+    contact.write_blocks(x, pattern, True, True)
+    curvature = kernels.hessian(x, True, True, pattern).toarray() - H
+    near = problem.contact.pairs(x)[2] < CONTACT.radius
+    extra = pair_hessian_np(kind[near], x[vertices[near]], CONTACT, exact=True) - pair_hessian_np(
+        kind[near], x[vertices[near]], CONTACT)
+    dof = (3 * vertices[near][:, :, None] + np.arange(3)).reshape(-1, 12)
+    full = np.zeros((3 * len(x), 3 * len(x)))
+    np.add.at(full, (dof[:, :, None], dof[:, None, :]), extra)
+    expected = full[free_dofs][:, free_dofs]
+    assert np.abs(expected).max() > 1e-3 * np.abs(blocks_np).max()
+    np.testing.assert_allclose(curvature, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
 
 
 def test_pattern_is_analysed_again_only_when_the_coupled_vertices_change():

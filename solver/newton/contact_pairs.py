@@ -8,9 +8,10 @@ missed was at least query_radius apart and has come closer by at most twice that
 beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials detect again. E_c is
 then exactly that of the pairs found at the trial, as in the oracle.
 
-Every pair's energy b(d), gradient b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T (12 and
-12x12, n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) come from
-`physics.contact.pair_gradient_hessian`, evaluated in the kernels below. The numpy `ContactTerm` of the
+Every pair's energy b(d), gradient b'(d) (w (x) n) and Hessian come from `physics.contact`
+(`pair_gradient_hessian`, `pair_hessian`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
+(n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) in projected steps, and the exact one,
+with the curvature b'(d) d2d/dx2 of the distance, where the Newton tries its exact Hessian. The numpy `ContactTerm` of the
 oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms: each checks the other.
 
 - `energy_gradient(x, g)`: E_c(x), with dE_c/dx added to g at the free vertices: every pair writes its
@@ -20,14 +21,14 @@ oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own 
   bounds at x (as `ContactTerm.step_cap`): no line-search trial carries a surface through another;
 - `couplings(x)`: the pairs closer than the radius (the others have no Hessian), whose four vertices a
   `HessianPattern` couples beside the tets';
-- `write_blocks(x, pattern, full)`: the 16 3x3 blocks of each of those pairs' Hessians into that pattern's
-  slots (rows M.. of its slot_of), before `StepKernels.hessian` sums every block's slots.
+- `write_blocks(x, pattern, full, exact)`: the 16 3x3 blocks of each of those pairs' Hessians into that
+  pattern's slots (rows M.. of its slot_of), before `StepKernels.hessian` sums every block's slots.
 """
 import numpy as np
 
 from .._ti import ti
 from ..mesh.tetmesh import TetMesh
-from ..physics.contact import pair_gradient_hessian
+from ..physics.contact import pair_gradient_hessian, pair_hessian
 from ..physics.contact_detection import ContactDetector
 
 
@@ -69,14 +70,14 @@ def contact_energy_gradient_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray
 
 @ti.kernel
 def pair_blocks_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray(), vertices: ti.types.ndarray(), k: ti.f64,
-                       r: ti.f64, first: ti.i32, full: ti.i32, slot_of: ti.types.ndarray(),
+                       r: ti.f64, first: ti.i32, full: ti.i32, exact: ti.i32, slot_of: ti.types.ndarray(),
                        slots: ti.types.ndarray()):
-    """Pair p's (kind (P,), vertices (P, 4)) Hessian at x (N, 3): its block of the ordered vertex pair
-    (k, l) into slots[slot_of[first + p, 4 k + l]] (-1: a constrained vertex; -2 - slot: above the
-    diagonal, only written when full), as a tet's in `hessian._tet_blocks`."""
+    """Pair p's (kind (P,), vertices (P, 4)) Hessian at x (N, 3), exact or PSD (`pair_hessian`): its block
+    of the ordered vertex pair (k, l) into slots[slot_of[first + p, 4 k + l]] (-1: a constrained vertex;
+    -2 - slot: above the diagonal, only written when full), as a tet's in `hessian._tet_blocks`."""
     for p in range(kind.shape[0]):
-        _, _, H = pair_gradient_hessian(kind[p], _point(x, vertices[p, 0]), _point(x, vertices[p, 1]),
-                                        _point(x, vertices[p, 2]), _point(x, vertices[p, 3]), k, r, ti.f64)
+        H = pair_hessian(kind[p], _point(x, vertices[p, 0]), _point(x, vertices[p, 1]), _point(x, vertices[p, 2]),
+                         _point(x, vertices[p, 3]), k, r, exact, ti.f64)
         for kl in ti.static(range(16)):
             n = slot_of[first + p, kl]
             if n <= -2 and full != 0:
@@ -109,7 +110,7 @@ class ContactPairs:
         that the first pair closer than the radius does not stall the solve that meets it (0.3 s with
         Taichi's offline cache, more without)."""
         pair_blocks_kernel(np.zeros((1, 3)), np.zeros(1, dtype=np.int32), np.zeros((1, 4), dtype=np.int32),
-                           self.contact.stiffness, self.contact.radius, 0, 0, np.full((1, 16), -1, dtype=np.int32),
+                           self.contact.stiffness, self.contact.radius, 0, 0, 1, np.full((1, 16), -1, dtype=np.int32),
                            np.zeros((1, 3, 3)))
 
     def serves(self, term) -> bool:
@@ -161,10 +162,11 @@ class ContactPairs:
             self._couplings = (np.ascontiguousarray(kind[near]), np.ascontiguousarray(vertices[near]))
         return self._couplings
 
-    def write_blocks(self, x: np.ndarray, pattern, full: bool) -> None:
+    def write_blocks(self, x: np.ndarray, pattern, full: bool, exact: bool) -> None:
         """The Hessian blocks of `couplings(x)` into the slots of `pattern`, a `HessianPattern` of the tets
-        with those couplings (full as in `StepKernels.hessian`)."""
+        with those couplings (full as in `StepKernels.hessian`); exact: the pairs' exact Hessians, else their
+        PSD parts."""
         kind, vertices = self.couplings(x)
         if len(kind):
             pair_blocks_kernel(x, kind, vertices, self.contact.stiffness, self.contact.radius, len(pattern.tets),
-                               int(full), pattern.slot_of, pattern.slots)
+                               int(full), int(exact), pattern.slot_of, pattern.slots)

@@ -44,13 +44,15 @@ class NewtonRecord:
 @dataclass
 class NewtonResult:
     """x: (N, 3) solution; iterations; converged; history: one `NewtonRecord` per iterate;
-    iterates: the positions after each iteration when asked for (`keep_iterates=True`)."""
+    iterates: the positions after each iteration when asked for (`keep_iterates=True`); evaluations: how
+    many times G and dG/dx were evaluated (line-search trials included)."""
 
     x: np.ndarray
     iterations: int
     converged: bool
     history: list = field(default_factory=list)
     iterates: list = field(default_factory=list)
+    evaluations: int = 0
 
 
 def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: np.ndarray,
@@ -86,7 +88,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
     start = time.perf_counter()
     g, g_new = np.empty_like(x), np.empty_like(x)
     G = energy_gradient(x, g)
-    result = NewtonResult(x, 0, False)
+    result = NewtonResult(x, 0, False, evaluations=1)
     result.history.append(NewtonRecord(0, G, float(np.abs(g).max()), 0.0))
     if np.abs(g).max() <= force_goal:
         result.converged = True
@@ -111,6 +113,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
             np.multiply(d, alpha, out=x_new)
             x_new += x
             G_new = energy_gradient(x_new, g_new)
+            result.evaluations += 1
             if np.isfinite(G_new) and G_new <= G + ARMIJO_C * alpha * slope + ENERGY_ROUNDOFF * abs(G):
                 break
             alpha *= BACKTRACK

@@ -189,6 +189,8 @@ class DirectSolver:
                 self._factor = qdldl.Solver(self._upper(), upper=True)
             else:
                 self._factor.update(self._upper(), upper=True)
+            if not (self._factor.factors()[1] > 0).all():      # H = L D L^T is positive definite iff D > 0
+                raise ArithmeticError("the Hessian is not positive definite")
         elif self.kind is LinearSolver.CHOLESPY:
             from cholespy import CholeskySolverD, MatrixType
 
@@ -236,12 +238,15 @@ class GlobalNewton:
     solver's symbolic analysis once; `solve` can be called for any problem with these tets and free
     mask (other positions, masses, material, time step, ground, contact). With contact, `contact` is the
     `ContactPairs` of the last problem, and `analyses` counts the patterns with pairs analysed.
+    exact_pairs: whether `newton_direction` tries the contact pairs' exact Hessians before their PSD parts
+    (False only to measure what they buy: benchmarks/newton_contact.py).
     """
 
-    def __init__(self, tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver.AUTO):
+    def __init__(self, tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver.AUTO, exact_pairs: bool = True):
         ensure_taichi()
         self.pattern = HessianPattern(tets, free)
         self.linear_solver = as_linear_solver(linear_solver)
+        self.exact_pairs = bool(exact_pairs)
         self.direct = DirectSolver(self.pattern, self.linear_solver)
         self.contact = None
         self._coupled = None        # (couplings (P, 4), pattern, DirectSolver) of the last Hessian with contact
@@ -281,31 +286,44 @@ class GlobalNewton:
         return pattern, direct
 
     def _assemble(self, kernels: StepKernels, contact, pattern: HessianPattern, x: np.ndarray, project: bool,
-                  full: bool):
-        """The Hessian at x into `pattern` (`StepKernels.hessian`), with the contact pairs' blocks."""
+                  full: bool, exact_pairs: bool = False):
+        """The Hessian at x into `pattern` (`StepKernels.hessian`), elastic blocks projected or not, with the
+        contact pairs' blocks, exact or their PSD parts."""
         if contact is not None:
-            contact.write_blocks(x, pattern, full)
+            contact.write_blocks(x, pattern, full, exact_pairs)
         return kernels.hessian(x, project, full, pattern)
 
     def newton_direction(self, kernels: StepKernels, x: np.ndarray, g: np.ndarray, project: bool = True,
                          contact: ContactPairs = None) -> np.ndarray:
         """d (N, 3) solving H d = -g on the free vertices (0 elsewhere), H with the pairs' blocks of
-        `contact` (a `ContactPairs` or None). project=False tries the exact, unprojected elastic Hessian
-        first and quietly takes the projected one where the exact one is not positive definite (the pair
-        blocks are positive semi-definite either way); the projected one falls back to SuperLU, then to a
-        mass-scaled gradient step, with a warning, when it gives no descent direction."""
+        `contact` (a `ContactPairs` or None). The Hessians tried, the first that is positive definite and
+        gives a descent direction taken:
+
+        1. (project=False only) the exact Hessian: unprojected elastic blocks, exact pair blocks;
+        2. (with contact) projected elastic blocks, exact pair blocks: the curvature of the distance where
+           closest points slide (near-parallel edges), which the PSD blocks miss;
+        3. projected elastic blocks, PSD pair blocks (n held fixed), positive definite by construction;
+
+        then SuperLU, then a mass-scaled gradient step, with a warning. SuperLU (`LinearSolver.SUPERLU`)
+        does not test definiteness, and a descent direction of an indefinite Hessian may lead to a saddle
+        of G; so with it the pair blocks are always the PSD ones."""
         p, direct = (self.pattern, self.direct) if contact is None else self.coupled_system(contact, x)
-        self._assemble(kernels, contact, p, x, project, direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY))
+        full = direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY)
+        exact_pairs = self.exact_pairs and contact is not None and direct.kind is not LinearSolver.SUPERLU
+        attempts = [(False, exact_pairs)] if not project else []
+        if exact_pairs:
+            attempts.append((True, True))
+        attempts.append((True, False))
         rhs = -g[p.free].ravel()
         d = np.zeros_like(x)
-        try:
-            d[p.free] = direct.solve(rhs).reshape(-1, 3)
-        except (ArithmeticError, RuntimeError):     # cholmod: not positive definite; qdldl: not quasi-definite
-            d[:] = np.nan
-        if np.isfinite(d).all() and np.vdot(g, d) < 0:
-            return d
-        if not project:
-            return self.newton_direction(kernels, x, g, True, contact)
+        for project_elastic, exact_pairs in attempts:
+            self._assemble(kernels, contact, p, x, project_elastic, full, exact_pairs)
+            try:
+                d[p.free] = direct.solve(rhs).reshape(-1, 3)
+            except (ArithmeticError, RuntimeError):     # cholmod, qdldl: not positive definite
+                continue
+            if np.isfinite(d).all() and np.vdot(g, d) < 0:
+                return d
         warnings.warn("the projected Hessian is not positive definite (no descent direction); "
                       "retrying with SuperLU", stacklevel=3)
         d[p.free] = superlu_solve(self._assemble(kernels, contact, p, x, True, True), rhs).reshape(-1, 3)

@@ -15,6 +15,14 @@ C2 at tau and infinite at d = 0. Vertex j of a pair gets the force -b'(d) w_j n 
 b''(d) w_j^2 n n^T (n held fixed, VBD Sec. 3.5); the pair's 12x12 Hessian is the same product over
 all four vertices, b''(d) (w (x) n)(w (x) n)^T, positive semi-definite because b'' > 0.
 
+The exact pair Hessian adds b'(d) d2d/dx2 (indefinite, b' < 0), the curvature of the distance: with
+u the closest-point parameters that are free (strictly inside their range: 0, 1 or 2 of alpha,
+beta, gamma, s, t) and phi(x, u) = |sum_j w_j(u) x_j|, d(x) = phi(x, u*(x)), so by the implicit
+function theorem d2d/dx2 = phi_xx - phi_xu phi_uu^-1 phi_ux. With W = (w_j I)_j (3x12), P = I - n n^T
+and A = dD/du (3 x m): phi_xx = W^T P W / d, phi_uu = A^T P A / d, phi_xu = (dW/du)^T n + W^T P A / d.
+Near parallel edges phi_uu is nearly singular and d bends sharply; there the exact Hessian lets the
+Newton reference step onto the bend instead of stalling in front of it.
+
 Written once: the `ti.func`s serve the sweep, energy() and the Taichi Newton; the numpy twins
 (`*_np`, vectorised over pairs) serve the Newton reference and the tests.
 """
@@ -260,6 +268,79 @@ def pair_gradient_hessian(kind, x0, x1, x2, x3, k, r, dtype: ti.template()):
     return barrier(d, k, r), db * J, d2b * J.outer_product(J)
 
 
+@ti.func
+def free_directions(kind, w, dtype: ti.template()):
+    """The free closest-point parameters u of a pair with weights w (4,): dw/du_i (4,) for i = 0, 1 and
+    their number m (0-2). On each primitive (vertex 0, or edge 0-1, against the rest) the vertices of
+    nonzero weight span the feature the closest point lies inside; its parameters move weight from the
+    first of them to each other one, dw/du = +-(e_j - e_first) (the sign does not matter below)."""
+    second = 1 if kind == int(PairKind.VERTEX_TRIANGLE) else 2
+    c0 = ti.Vector.zero(dtype, 4)
+    c1 = ti.Vector.zero(dtype, 4)
+    m = 0
+    first = ti.Vector([-1, -1])                 # the first vertex of nonzero weight on each primitive
+    for j in ti.static(range(4)):
+        if w[j] != 0:
+            side = 0 if j < second else 1
+            if first[side] < 0:
+                first[side] = j
+            else:
+                c = ti.Vector.zero(dtype, 4)
+                c[j] = 1
+                for i in ti.static(range(4)):
+                    if i == first[side]:
+                        c[i] = -1
+                if m == 0:
+                    c0 = c
+                else:
+                    c1 = c
+                m += 1
+    return c0, c1, m
+
+
+@ti.func
+def distance_hessian(kind, x0, x1, x2, x3, d, w, n, dtype: ti.template()):
+    """d2d/dx2 (12x12) of a pair at distance d > 0 with weights w and normal n: phi_xx - phi_xu phi_uu^-1
+    phi_ux (module docstring), coordinates ordered vertex by vertex."""
+    c0, c1, m = free_directions(kind, w, dtype)
+    P = ti.Matrix.identity(dtype, 3) - n.outer_product(n)
+    A0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
+    A1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
+    PA0, PA1 = P @ A0, P @ A1
+    phi_uu = ti.Matrix([[A0.dot(PA0), A0.dot(PA1)], [A1.dot(PA0), A1.dot(PA1)]], dt=dtype) / d
+    if m < 2:                                   # unused parameters: identity rows, zero couplings
+        phi_uu[1, 1] = 1
+    if m < 1:
+        phi_uu[0, 0] = 1
+    inverse = phi_uu.inverse()
+    F = ti.Matrix.zero(dtype, 12, 2)            # phi_xu
+    for j in ti.static(range(4)):
+        for a in ti.static(range(3)):
+            F[3 * j + a, 0] = c0[j] * n[a] + w[j] * PA0[a] / d
+            F[3 * j + a, 1] = c1[j] * n[a] + w[j] * PA1[a] / d
+    H = -F @ inverse @ F.transpose()
+    for j, k in ti.static(ti.ndrange(4, 4)):
+        for a, b in ti.static(ti.ndrange(3, 3)):
+            H[3 * j + a, 3 * k + b] += w[j] * w[k] * P[a, b] / d
+    return H
+
+
+@ti.func
+def pair_hessian(kind, x0, x1, x2, x3, k, r, exact, dtype: ti.template()):
+    """The 12x12 Hessian of one pair's b(d(x)): the PSD b''(d) (w (x) n)(w (x) n)^T, plus b'(d) d2d/dx2
+    when exact (int, nonzero: the exact Hessian, indefinite); for the Taichi Newton."""
+    d, w, n = pair_geometry(kind, x0, x1, x2, x3, dtype)
+    db, d2b = barrier_derivatives(d, k, r)
+    J = ti.Vector.zero(dtype, 12)
+    for j in ti.static(range(4)):
+        for a in ti.static(range(3)):
+            J[3 * j + a] = w[j] * n[a]
+    H = d2b * J.outer_product(J)
+    if exact != 0 and db != 0:
+        H += db * distance_hessian(kind, x0, x1, x2, x3, d, w, n, dtype)
+    return H
+
+
 # ---------------------------------------------------------------------------------------------
 # Numpy twins, vectorised over P pairs.
 # ---------------------------------------------------------------------------------------------
@@ -387,12 +468,57 @@ def pair_blocks_np(kind, X, contact: Contact):
     return (d2b[:, None] * w ** 2)[:, :, None, None] * np.einsum("pa,pb->pab", n, n)[:, None]
 
 
-def pair_hessian_np(kind, X, contact: Contact):
-    """(P, 12, 12) PSD pair Hessian b''(d) (w (x) n)(w (x) n)^T, coordinates ordered vertex by vertex."""
+def free_directions_np(kind, w):
+    """(dw/du (P, 2, 4), m (P,)): the free closest-point parameters of pairs with weights w (P, 4), as
+    `free_directions` (unused rows zero)."""
+    kind, w = np.asarray(kind), np.asarray(w)
+    rows = np.arange(len(w))
+    second = np.where(kind == PairKind.VERTEX_TRIANGLE, 1, 2)
+    c = np.zeros((len(w), 2, 4))
+    m = np.zeros(len(w), dtype=np.int64)
+    first = np.full((len(w), 2), -1)
+    for j in range(4):
+        side = (j >= second).astype(np.int64)
+        anchor = first[rows, side]
+        active = w[:, j] != 0
+        new = active & (anchor < 0)
+        first[rows[new], side[new]] = j
+        free = rows[active & (anchor >= 0)]
+        c[free, m[free], j] = 1
+        c[free, m[free], anchor[free]] = -1
+        m[free] += 1
+    return c, m
+
+
+def distance_hessian_np(kind, X):
+    """(P, 12, 12) d2d/dx2 of pairs with `PairKind` kind (P,) and positions X (P, 4, 3), d > 0; as
+    `distance_hessian`."""
+    X = np.asarray(X, dtype=np.float64)
     d, w, n = pair_geometry_np(kind, X)
-    _, d2b = barrier_derivatives_np(d, contact.stiffness, contact.radius)
+    c, m = free_directions_np(kind, w)
+    A = np.einsum("pij,pja->pia", c, X)                                   # (P, 2, 3)
+    PA = A - np.einsum("pia,pa->pi", A, n)[:, :, None] * n[:, None, :]
+    phi_uu = np.einsum("pia,pla->pil", A, PA) / d[:, None, None]
+    phi_uu[m < 2, 1, 1] = 1
+    phi_uu[m < 1, 0, 0] = 1
+    F = (c[:, :, :, None] * n[:, None, None, :]
+         + w[:, None, :, None] * PA[:, :, None, :] / d[:, None, None, None]).reshape(-1, 2, 12)
+    P = np.eye(3) - np.einsum("pa,pb->pab", n, n)
+    H = np.einsum("pj,pk,pab->pjakb", w, w, P).reshape(-1, 12, 12) / d[:, None, None]
+    return H - np.einsum("pia,pil,plb->pab", F, np.linalg.inv(phi_uu), F)
+
+
+def pair_hessian_np(kind, X, contact: Contact, exact: bool = False):
+    """(P, 12, 12) pair Hessian, coordinates ordered vertex by vertex: the PSD b''(d) (w (x) n)(w (x) n)^T,
+    plus b'(d) d2d/dx2 when exact (the exact Hessian of b(d(x)), indefinite); as `pair_hessian`."""
+    d, w, n = pair_geometry_np(kind, X)
+    db, d2b = barrier_derivatives_np(d, contact.stiffness, contact.radius)
     J = (w[:, :, None] * n[:, None, :]).reshape(-1, 12)
-    return d2b[:, None, None] * np.einsum("pa,pb->pab", J, J)
+    H = d2b[:, None, None] * np.einsum("pa,pb->pab", J, J)
+    if exact:
+        near = db != 0
+        H[near] += db[near, None, None] * distance_hessian_np(np.asarray(kind)[near], np.asarray(X)[near])
+    return H
 
 
 def friction_scale_np(s, eps_u: float):
