@@ -107,11 +107,11 @@ def plot(rows, path):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 3.6))
-    for kind in dict.fromkeys(r["linear_solver"] for r in rows):
-        for h, style in (("exact", "-"), ("psd", "--")):
+    for kind, (style, marker) in zip(dict.fromkeys(r["linear_solver"] for r in rows), (("-", "o"), (":", "x"))):
+        for h, colour in (("exact", "tab:green"), ("psd", "tab:red")):
             g = [r for r in rows if r["linear_solver"] == kind and r["pair_hessian"] == h]
-            ax.plot([r["frame"] for r in g], [r["iterations"] for r in g], style, marker=".",
-                    label=f"{kind}, {h} pair Hessians")
+            ax.plot([r["frame"] for r in g], [r["iterations"] for r in g], style, color=colour, marker=marker,
+                    markersize=4, label=f"{kind}, {h} pair Hessians")
     ax.axhline(CAP, color="0.6", lw=0.8)
     ax.set_xlabel("step of head_on (1/240 s)")
     ax.set_ylabel("Newton iterations")
