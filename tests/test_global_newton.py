@@ -160,6 +160,35 @@ def test_an_indefinite_exact_hessian_quietly_takes_the_projected_one():
     np.testing.assert_allclose(d[p.free].ravel(), expected, rtol=0, atol=1e-9 * np.abs(expected).max())
 
 
+@pytest.mark.parametrize("kind", [LinearSolver.CHOLMOD, LinearSolver.CHOLESPY, LinearSolver.QDLDL])
+def test_the_definiteness_test_of_each_linear_solver(kind):
+    """The squashed cube's exact Hessian is indefinite: CHOLMOD and cholespy refuse it, QDLDL when asked
+    (require_definite, as for exact contact pair blocks), always as ArithmeticError; the projected one
+    passes every test and is solved."""
+    module = {LinearSolver.CHOLMOD: "cvxopt", LinearSolver.CHOLESPY: "cholespy", LinearSolver.QDLDL: "qdldl"}[kind]
+    pytest.importorskip(module, reason=f"the optional {module} is not installed")
+    from solver.newton.direct import DirectSolver
+
+    p = _falling_cube()
+    x = p.y_with_constraints().copy()
+    x[:, 2] = 0.001 + 0.3 * (x[:, 2] - x[:, 2].min())
+    x = np.ascontiguousarray(x)
+    newton = GlobalNewton(p.tets, p.free)
+    kernels = StepKernels(newton.pattern, p)
+    direct = DirectSolver(newton.pattern, kind)
+    rhs = -kernels.gradient(x)[p.free].ravel()
+    exact = kernels.hessian(x, False, True, newton.pattern).toarray()
+    assert np.linalg.eigvalsh(exact).min() < 0
+    with pytest.raises(ArithmeticError):
+        direct.solve(rhs, require_definite=True)
+    assert not direct.factorised                    # no chord step from a refused factorisation
+    if kind is LinearSolver.QDLDL:
+        np.testing.assert_allclose(exact @ direct.solve(rhs), rhs, rtol=0, atol=1e-8 * np.abs(rhs).max())
+    projected = kernels.hessian(x, True, True, newton.pattern).toarray()
+    np.testing.assert_allclose(projected @ direct.solve(rhs, require_definite=True), rhs, rtol=0,
+                               atol=1e-8 * np.abs(rhs).max())
+
+
 @pytest.mark.parametrize("kind", list(LinearSolver))
 def test_every_linear_solver_gives_the_same_step(kind):
     p = _bar_with_ground()

@@ -168,9 +168,11 @@ class DirectSolver:
         p = self.pattern
         return sp.csc_matrix((p.upper, p.upper_indices, p.upper_indptr), shape=(p.n_dofs, p.n_dofs))
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, rhs: np.ndarray, require_definite: bool = False) -> np.ndarray:
         """d (3F,) with H d = rhs for the pattern's current values H (and `pattern.upper`).
-        Raises ArithmeticError or RuntimeError when the factorisation finds H not positive definite."""
+        Raises ArithmeticError or RuntimeError when the factorisation finds H not positive definite: CHOLMOD
+        and cholespy always; QDLDL (an LDL^T of any quasi-definite H) only with require_definite, from the
+        signs of D, which cost a third of a factorisation to read; SuperLU never."""
         p = self.pattern
         self.factorised = False
         if self.kind is LinearSolver.CHOLMOD:
@@ -189,12 +191,15 @@ class DirectSolver:
                 self._factor = qdldl.Solver(self._upper(), upper=True)
             else:
                 self._factor.update(self._upper(), upper=True)
-            if not (self._factor.factors()[1] > 0).all():      # H = L D L^T is positive definite iff D > 0
+            if require_definite and not (self._factor.factors()[1] > 0).all():     # H = L D L^T > 0 iff D > 0
                 raise ArithmeticError("the Hessian is not positive definite")
         elif self.kind is LinearSolver.CHOLESPY:
             from cholespy import CholeskySolverD, MatrixType
 
-            self._factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
+            try:
+                self._factor = CholeskySolverD(p.n_dofs, p.indptr, p.indices, p.data, MatrixType.CSR)
+            except ValueError as error:         # cholespy's "Matrix is not positive definite!"
+                raise ArithmeticError(str(error)) from None
         else:
             self._factor = spla.splu(p.matrix().tocsc(), permc_spec="MMD_AT_PLUS_A")
         self.factorised = True
@@ -304,9 +309,10 @@ class GlobalNewton:
            closest points slide (near-parallel edges), which the PSD blocks miss;
         3. projected elastic blocks, PSD pair blocks (n held fixed), positive definite by construction;
 
-        then SuperLU, then a mass-scaled gradient step, with a warning. SuperLU (`LinearSolver.SUPERLU`)
-        does not test definiteness, and a descent direction of an indefinite Hessian may lead to a saddle
-        of G; so with it the pair blocks are always the PSD ones."""
+        then SuperLU, then a mass-scaled gradient step, with a warning. With exact pair blocks a descent
+        direction of an indefinite Hessian may lead to a saddle of G, so those Hessians must pass a test of
+        definiteness (`DirectSolver.solve`'s require_definite); SuperLU has none, so with it the pair blocks
+        are always the PSD ones. The exact elastic Hessian alone is taken on descent, as it always was."""
         p, direct = (self.pattern, self.direct) if contact is None else self.coupled_system(contact, x)
         full = direct.kind in (LinearSolver.SUPERLU, LinearSolver.CHOLESPY)
         exact_pairs = self.exact_pairs and contact is not None and direct.kind is not LinearSolver.SUPERLU
@@ -316,10 +322,10 @@ class GlobalNewton:
         attempts.append((True, False))
         rhs = -g[p.free].ravel()
         d = np.zeros_like(x)
-        for project_elastic, exact_pairs in attempts:
-            self._assemble(kernels, contact, p, x, project_elastic, full, exact_pairs)
+        for project_elastic, exact in attempts:
+            self._assemble(kernels, contact, p, x, project_elastic, full, exact)
             try:
-                d[p.free] = direct.solve(rhs).reshape(-1, 3)
+                d[p.free] = direct.solve(rhs, require_definite=exact).reshape(-1, 3)
             except (ArithmeticError, RuntimeError):     # cholmod, qdldl: not positive definite
                 continue
             if np.isfinite(d).all() and np.vdot(g, d) < 0:
