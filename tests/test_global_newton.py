@@ -132,7 +132,7 @@ def test_exact_hessian_near_the_solution_converges_in_fewer_iterations_than_proj
     newton = GlobalNewton(p.tets, p.free)
     calls = []
     real_solve = newton.direct.solve
-    newton.direct.solve = lambda rhs: calls.append(1) or real_solve(rhs)
+    newton.direct.solve = lambda rhs, **options: calls.append(1) or real_solve(rhs, **options)
     fast = newton.solve(p, x0, tolerance=1e-12)
     assert fast.converged and fast.iterations < ref.iterations
     assert np.abs(fast.x - ref.x).max() <= 1e-9 * np.abs(ref.x - x0).max()
@@ -285,7 +285,7 @@ def test_a_solver_giving_no_descent_direction_warns_and_falls_back(monkeypatch):
     x0 = p.y_with_constraints()
     ref = solver.newton_solve(p, x0, tolerance=1e-12)
     newton = GlobalNewton(p.tets, p.free, LinearSolver.QDLDL)
-    monkeypatch.setattr(newton.direct, "solve", lambda rhs: -rhs)      # an ascent direction: d = +g
+    monkeypatch.setattr(newton.direct, "solve", lambda rhs, **options: -rhs)      # an ascent direction: d = +g
     with pytest.warns(UserWarning, match="not positive definite.*retrying with SuperLU"):
         result = newton.solve(p, x0, tolerance=1e-12)
     assert result.converged
