@@ -80,7 +80,8 @@ def measure(solver, frames):
 
 def summarise(rows):
     """One row per (linear solver, pair Hessian): totals over the solves after the first contact."""
-    touching = [r for r in rows if any(q["contacts"] > 0 for q in rows if q["frame"] <= r["frame"])]
+    first = min((r["frame"] for r in rows if r["contacts"] > 0), default=np.inf)
+    touching = [r for r in rows if r["frame"] >= first]
     out = []
     for kind in dict.fromkeys(r["linear_solver"] for r in rows):
         group = {h: [r for r in touching if r["linear_solver"] == kind and r["pair_hessian"] == h]

@@ -141,13 +141,19 @@ def test_exact_hessian_near_the_solution_converges_in_fewer_iterations_than_proj
     assert gradients[2] < 1e-3 * gradients[1]          # quadratic, not linear, once close
 
 
-def test_an_indefinite_exact_hessian_quietly_takes_the_projected_one():
-    """A cube squashed to a third of its height with a long time step: the exact Hessian of G is not
-    positive definite, so the direction is the projected Newton step, without a warning."""
+def _squashed_cube():
+    """(problem, x): the falling cube squashed to a third of its height, where G's exact Hessian (long time
+    step) is not positive definite."""
     p = _falling_cube()
     x = p.y_with_constraints().copy()
     x[:, 2] = 0.001 + 0.3 * (x[:, 2] - x[:, 2].min())
-    x = np.ascontiguousarray(x)
+    return p, np.ascontiguousarray(x)
+
+
+def test_an_indefinite_exact_hessian_quietly_takes_the_projected_one():
+    """A cube squashed to a third of its height with a long time step: the exact Hessian of G is not
+    positive definite, so the direction is the projected Newton step, without a warning."""
+    p, x = _squashed_cube()
     newton = GlobalNewton(p.tets, p.free)
     kernels = StepKernels(newton.pattern, p)
     assert np.linalg.eigvalsh(kernels.hessian(x, project=False).toarray()).min() < 0
@@ -169,10 +175,7 @@ def test_the_definiteness_test_of_each_linear_solver(kind):
     pytest.importorskip(module, reason=f"the optional {module} is not installed")
     from solver.newton.direct import DirectSolver
 
-    p = _falling_cube()
-    x = p.y_with_constraints().copy()
-    x[:, 2] = 0.001 + 0.3 * (x[:, 2] - x[:, 2].min())
-    x = np.ascontiguousarray(x)
+    p, x = _squashed_cube()
     newton = GlobalNewton(p.tets, p.free)
     kernels = StepKernels(newton.pattern, p)
     direct = DirectSolver(newton.pattern, kind)

@@ -9,7 +9,7 @@ beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials
 then exactly that of the pairs found at the trial, as in the oracle.
 
 Every pair's energy b(d), gradient b'(d) (w (x) n) and Hessian come from `physics.contact`
-(`pair_gradient_hessian`, `pair_hessian`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
+(`pair_energy_gradient`, `pair_hessian`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
 (n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) in projected steps, and the exact one,
 with the curvature b'(d) d2d/dx2 of the distance, where the Newton tries its exact Hessian. The numpy `ContactTerm` of the
 oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms: each checks the other.
@@ -28,7 +28,7 @@ import numpy as np
 
 from .._ti import ti
 from ..mesh.tetmesh import TetMesh
-from ..physics.contact import pair_gradient_hessian, pair_hessian
+from ..physics.contact import pair_energy_gradient, pair_hessian
 from ..physics.contact_detection import ContactDetector
 
 
@@ -49,8 +49,8 @@ def contact_energy_gradient_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray
     total = 0.0
     for p in range(n_pairs):
         v = pair[p]
-        b, grad, _ = pair_gradient_hessian(kind[p], _point(x, v[0]), _point(x, v[1]), _point(x, v[2]),
-                                           _point(x, v[3]), k, r, ti.f64)
+        b, grad = pair_energy_gradient(kind[p], _point(x, v[0]), _point(x, v[1]), _point(x, v[2]),
+                                       _point(x, v[3]), k, r, ti.f64)
         total += b
         for a in ti.static(range(12)):
             pair_gradient[p, a] = grad[a]

@@ -256,16 +256,22 @@ def contact_friction(u, n, w_j, f_n, mu, eps_u, dtype: ti.template()):
 
 
 @ti.func
-def pair_gradient_hessian(kind, x0, x1, x2, x3, k, r, dtype: ti.template()):
-    """Energy b (J), gradient g (12,) = b'(d) (w (x) n) and PSD Hessian b''(d) (w (x) n)(w (x) n)^T (12x12)
-    of one pair, coordinates ordered vertex by vertex; for the Taichi Newton."""
-    d, w, n = pair_geometry(kind, x0, x1, x2, x3, dtype)
-    db, d2b = barrier_derivatives(d, k, r)
+def distance_gradient(w, n, dtype: ti.template()):
+    """dd/dx = w (x) n (12,) of a pair with weights w (4,) and normal n, coordinates vertex by vertex."""
     J = ti.Vector.zero(dtype, 12)
     for j in ti.static(range(4)):
         for a in ti.static(range(3)):
             J[3 * j + a] = w[j] * n[a]
-    return barrier(d, k, r), db * J, d2b * J.outer_product(J)
+    return J
+
+
+@ti.func
+def pair_energy_gradient(kind, x0, x1, x2, x3, k, r, dtype: ti.template()):
+    """Energy b (J) and gradient g (12,) = b'(d) (w (x) n) of one pair, coordinates ordered vertex by
+    vertex; for the Taichi Newton."""
+    d, w, n = pair_geometry(kind, x0, x1, x2, x3, dtype)
+    db, _ = barrier_derivatives(d, k, r)
+    return barrier(d, k, r), db * distance_gradient(w, n, dtype)
 
 
 @ti.func
@@ -331,10 +337,7 @@ def pair_hessian(kind, x0, x1, x2, x3, k, r, exact, dtype: ti.template()):
     when exact (int, nonzero: the exact Hessian, indefinite); for the Taichi Newton."""
     d, w, n = pair_geometry(kind, x0, x1, x2, x3, dtype)
     db, d2b = barrier_derivatives(d, k, r)
-    J = ti.Vector.zero(dtype, 12)
-    for j in ti.static(range(4)):
-        for a in ti.static(range(3)):
-            J[3 * j + a] = w[j] * n[a]
+    J = distance_gradient(w, n, dtype)
     H = d2b * J.outer_product(J)
     if exact != 0 and db != 0:
         H += db * distance_hessian(kind, x0, x1, x2, x3, d, w, n, dtype)
