@@ -19,16 +19,22 @@ except ImportError:
 NAME = ti.__name__
 
 
+def runtime():
+    """The object that stands for the running Taichi: ``ti.init`` (and ``ti.reset``) replace it, and
+    free every field and ndarray made before, so an object holding arrays is usable only while this
+    stays the same object."""
+    from importlib import import_module
+
+    return import_module(f"{NAME}.lang.impl").get_runtime()
+
+
 def initialised_arch():
     """The arch the runtime was initialised on (``ti.cpu``, ``ti.cuda``, ...), or None before ``init``.
 
     Taichi's runtime holds ``prog = None`` until ``ti.init``; Quadrants' ``prog`` property raises
     instead, so its private ``_prog`` is read.
     """
-    from importlib import import_module
-
-    runtime = import_module(f"{NAME}.lang.impl").get_runtime()
-    prog = runtime._prog if NAME == "quadrants" else runtime.prog
+    prog = runtime()._prog if NAME == "quadrants" else runtime().prog
     return None if prog is None else prog.config().arch
 
 

@@ -2,6 +2,7 @@
 import contextlib
 import sys
 import warnings
+import weakref
 from enum import Enum
 
 from . import _ti
@@ -65,3 +66,25 @@ def ensure_taichi(arch=None) -> None:
             arch = "cpu"
     with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not program output
         ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, default_fp=ti.f64, log_level=ti.WARN)
+
+
+class RuntimeCache:
+    """A cache of objects that hold Taichi arrays (a mesh's adjacency on the device, a Newton solver's
+    buffers), shared by the simulations of one Taichi runtime. `ti.init` frees every array made
+    before it, so `get()` hands out a new, empty store once Taichi has been initialised again.
+
+    make: the store's type (`dict`, `collections.OrderedDict`, `weakref.WeakKeyDictionary`).
+    """
+
+    def __init__(self, make=dict):
+        self._make = make
+        self._runtime = None        # weak reference to the runtime the store belongs to
+        self._store = make()
+
+    def get(self):
+        """The store of the running Taichi (`_ti.runtime`)."""
+        running = _ti.runtime()
+        if self._runtime is None or self._runtime() is not running:
+            self._store = self._make()
+            self._runtime = weakref.ref(running)
+        return self._store

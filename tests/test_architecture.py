@@ -42,6 +42,42 @@ def test_a_second_simulation_of_the_same_mesh_reuses_topology_and_kernels():
     np.testing.assert_array_equal(second.positions, first.positions)
 
 
+def test_simulations_built_after_ti_init_again_do_not_reuse_freed_arrays():
+    """ti.init frees every array made before it. The device adjacency and the Newton solvers are cached
+    per Taichi runtime, so a simulation built afterwards of the same mesh gets fresh ones and steps as
+    before; one built before refuses in one line instead of reading freed memory."""
+    code = textwrap.dedent("""
+        import numpy as np, solver
+        from solver._ti import ti
+        mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(6, 2, 2))
+        def build(method):
+            return solver.Simulation(mesh, solver.Material(1e5, 0.3, 1000.0), method=method, iterations=10,
+                                     fixed=mesh.vertices[:, 0] < 1e-9)
+        before = {}
+        for method in ("vbd", "newton"):
+            sim = build(method)
+            sim.step(2)
+            before[method] = (sim, sim.positions)
+        ti.init(arch=ti.cpu, default_fp=ti.f64, log_level=ti.WARN)
+        for method, (old, x) in before.items():
+            sim = build(method)
+            sim.step(2)
+            print(method, np.abs(sim.positions - x).max())
+            try:
+                old.step()
+            except solver.ConfigError as e:
+                print(method, "old:", e)
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180)
+    assert out.returncode == 0, out.stderr[-2000:]
+    lines = [line for line in out.stdout.splitlines() if line.startswith(("vbd", "newton"))]
+    assert [line.split()[0] for line in lines] == ["vbd", "vbd", "newton", "newton"], out.stdout
+    for method in ("vbd", "newton"):
+        gap, old = [line.split(maxsplit=1)[1] for line in lines if line.startswith(method)]
+        assert float(gap) == 0.0
+        assert old.startswith("old: Taichi was initialised again (ti.init) after this Simulation was built")
+
+
 def test_topology_is_read_only_and_consistent():
     sim = cantilever()
     top = sim.topology

@@ -182,6 +182,18 @@ def solver_module():
     return solver
 
 
+def test_a_benchmark_run_in_process_keeps_the_running_taichi(solver_module):
+    """ti.init would free every array of the process (the tests' simulations and caches): a benchmark's
+    main() called where Taichi already runs with its settings keeps it."""
+    from benchmarks.common import init_taichi
+    from solver._ti import runtime
+
+    running, arch = runtime(), "cpu" if solver_module.backend.running_on_cpu() else "gpu"
+    init_taichi(arch=arch)
+    init_taichi(threads=None, kernel_profiler=False, arch=arch)
+    assert runtime() is running
+
+
 @pytest.mark.backend
 def test_numpy_vbd_matches_taichi_sweep(solver_module):
     solver = solver_module

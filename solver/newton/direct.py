@@ -41,7 +41,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.sparse.csgraph import reverse_cuthill_mckee
 
-from ..backend import ensure_taichi
+from ..backend import RuntimeCache, ensure_taichi
 from ..errors import ConfigError, enum_value
 from .contact_pairs import ContactPairs
 from .hessian import HessianPattern, StepKernels
@@ -396,7 +396,7 @@ def _same_graph(a: HessianPattern, b: HessianPattern) -> bool:
             and np.array_equal(a.vertex_graph.indices, b.vertex_graph.indices))
 
 
-_CACHE = OrderedDict()
+_CACHE = RuntimeCache(OrderedDict)
 _CACHE_SIZE = 8
 
 
@@ -411,15 +411,18 @@ def connectivity_key(tets: np.ndarray, free: np.ndarray) -> tuple:
 
 def global_newton(tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver.AUTO) -> GlobalNewton:
     """The `GlobalNewton` of this connectivity and free mask, built on first use and cached (the last
-    8 meshes) so that every step and every Simulation on the same mesh reuses it."""
+    8 meshes of the running Taichi, whose arrays `ti.init` frees) so that every step and every
+    Simulation on the same mesh reuses it."""
     key = connectivity_key(tets, free) + (as_linear_solver(linear_solver),)
-    if key in _CACHE:
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
+    ensure_taichi()
+    cache = _CACHE.get()
+    if key in cache:
+        cache.move_to_end(key)
+        return cache[key]
     solver = GlobalNewton(tets, free, linear_solver)
-    _CACHE[key] = solver
-    while len(_CACHE) > _CACHE_SIZE:
-        _CACHE.popitem(last=False)
+    cache[key] = solver
+    while len(cache) > _CACHE_SIZE:
+        cache.popitem(last=False)
     return solver
 
 

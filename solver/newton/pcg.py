@@ -26,7 +26,7 @@ from enum import Enum
 import numpy as np
 
 from .._ti import ti
-from ..backend import ensure_taichi
+from ..backend import RuntimeCache, ensure_taichi
 from ..mesh.coloring import color_vertices
 from ..errors import ConfigError, enum_value
 from .damped_newton import REFERENCE_TOLERANCE, NewtonResult, damped_newton
@@ -307,18 +307,21 @@ class NewtonPCG:
         return result
 
 
-_CACHE = {}
+_CACHE = RuntimeCache()
 
 
 def newton_pcg(tets: np.ndarray, free: np.ndarray, preconditioner=Preconditioner.COLOR_SWEEP,
                forcing: float = 0.01, max_cg_iterations: int = 500) -> NewtonPCG:
-    """The `NewtonPCG` of this connectivity, free mask and settings, built on first use and cached."""
+    """The `NewtonPCG` of this connectivity, free mask and settings, built on first use and cached
+    (for the running Taichi, whose arrays `ti.init` frees)."""
     from .direct import connectivity_key
 
     key = connectivity_key(tets, free) + (str(getattr(preconditioner, "value", preconditioner)), float(forcing),
                                           int(max_cg_iterations))
-    if key not in _CACHE:
-        if len(_CACHE) >= 8:
-            _CACHE.pop(next(iter(_CACHE)))
-        _CACHE[key] = NewtonPCG(tets, free, preconditioner, forcing, max_cg_iterations)
-    return _CACHE[key]
+    ensure_taichi()
+    cache = _CACHE.get()
+    if key not in cache:
+        if len(cache) >= 8:
+            cache.pop(next(iter(cache)))
+        cache[key] = NewtonPCG(tets, free, preconditioner, forcing, max_cg_iterations)
+    return cache[key]

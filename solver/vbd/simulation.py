@@ -171,6 +171,7 @@ class Simulation(SimulationState):
     # -----------------------------------------------------------------------------------------
     def step(self, n: int = 1) -> None:
         """Advance `n` time steps with the simulation's `method`."""
+        self._require_live()
         for _ in range(count(n, "n")):
             if self.method is Method.VBD:
                 self.begin_step()
@@ -182,6 +183,7 @@ class Simulation(SimulationState):
     def begin_step(self) -> None:
         """Save x_n, move kinematic vertices to their targets at t + h, predict y, set the guess, and
         set `stop_below`, the max_i |f_i| in N at which this step stops (None without a tolerance)."""
+        self._require_live()
         if self._in_step:
             raise ConfigError("begin_step() called twice; call end_step() first")
         s = self._settings
@@ -214,6 +216,7 @@ class Simulation(SimulationState):
     def run_iterations(self, k: int) -> int:
         """Run up to `k` VBD iterations of the current step; returns how many ran. With method="vbd", stop
         once max_i |f_i| <= `stop_below`, checked every `check_every` iterations."""
+        self._require_live()
         if not self._in_step:
             raise ConfigError("run_iterations() needs begin_step() first")
         s = self._settings

@@ -4,12 +4,14 @@ restoring a state. `SimulationState` is the base class of `Simulation`, which ho
 """
 from dataclasses import dataclass
 from typing import NamedTuple
-from weakref import WeakKeyDictionary
+from weakref import WeakKeyDictionary, ref
 
 import numpy as np
+from .. import _ti
 from .._ti import ti
 
 from . import layout as L
+from ..backend import RuntimeCache
 from ..errors import ConfigError
 from ..mesh.bodies import body_labels
 from ..mesh.topology import Topology, grad_rows
@@ -17,7 +19,7 @@ from ..method import Method
 from .contact_state import ContactStage, as_contact
 from .translation import BodyTranslation
 
-_DEVICE_TOPOLOGY: "WeakKeyDictionary[Topology, dict]" = WeakKeyDictionary()
+_DEVICE_TOPOLOGY = RuntimeCache(WeakKeyDictionary)      # {Topology: {dtype: arrays}} per Taichi runtime
 
 
 class SweepArrays(NamedTuple):
@@ -80,6 +82,7 @@ class SimulationState:
         self._Dm_inv.from_numpy(self._grad_rows[:, 1:].astype(self._np_dtype))
         self._volume.from_numpy(self._rest_vol.astype(self._np_dtype))
         self._adjacency = self._device_topology()
+        self._runtime = ref(_ti.runtime())              # the Taichi these arrays belong to
 
         kin = np.flatnonzero(self.kinematic_mask).astype(np.int32)
         self._kinematic_rest = X[kin]
@@ -89,9 +92,10 @@ class SimulationState:
         self._kin_ids.from_numpy(np.resize(kin, max(len(kin), 1)))
 
     def _device_topology(self):
-        """The topology's arrays on the device, shared by simulations of the same mesh and precision."""
+        """The topology's arrays on the device, shared by simulations of the same mesh and precision
+        (and of the same Taichi runtime: `ti.init` frees them)."""
         top = self.topology
-        per_dtype = _DEVICE_TOPOLOGY.setdefault(top, {})
+        per_dtype = _DEVICE_TOPOLOGY.get().setdefault(top, {})
         if self.dtype not in per_dtype:
             color_order = ti.ndarray(ti.i32, top.n_slots)
             offsets = ti.ndarray(ti.i32, top.n_slots + 1)
@@ -150,7 +154,15 @@ class SimulationState:
         """(N, 3) float64 copy of the current (or last) step's inertial target y = x_n + h v_n + h^2 g."""
         return self._row(L.Y)
 
+    def _require_live(self) -> None:
+        """Refuse to touch the arrays once `ti.init` has freed them (Taichi initialised again after
+        this simulation was built), where Taichi would crash or read freed memory."""
+        if self._runtime() is not _ti.runtime():
+            raise ConfigError("Taichi was initialised again (ti.init) after this Simulation was built, which "
+                              "freed its arrays; build a new Simulation after ti.init")
+
     def _row(self, row: int) -> np.ndarray:
+        self._require_live()
         L.read_row(self.state, row, self._row_buffer)
         return self._row_buffer.to_numpy().astype(np.float64)
 
@@ -245,6 +257,7 @@ class SimulationState:
         self._set_rows({L.V: v, L.V_PREV: v_prev})
 
     def _set_rows(self, rows: dict) -> None:
+        self._require_live()
         for row, value in rows.items():
             self._row_buffer.from_numpy(np.asarray(value, dtype=self._np_dtype))
             L.write_row(self.state, row, self._row_buffer)
