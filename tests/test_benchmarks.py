@@ -80,6 +80,7 @@ def test_throughput_quick(tmp_path):
     assert (tmp_path / "throughput.png").exists()
 
 
+@pytest.mark.slow
 def test_stability_quick(tmp_path):
     run_quick("stability", tmp_path)
     data = rows(tmp_path / "stability.csv")

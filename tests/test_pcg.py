@@ -113,6 +113,7 @@ def test_bad_settings_are_config_errors(problem):
         NewtonPCG(p.tets, p.free, forcing=1.5)
 
 
+@pytest.mark.slow
 def test_newton_speed_benchmark_quick_run_and_no_overwrite(tmp_path):
     """The benchmark's --quick mode writes its CSVs (every method reaches x*), and refuses to
     overwrite them without --overwrite. No timing is asserted."""
