@@ -103,7 +103,9 @@ class Simulation(SimulationState):
     after it, `last_iterations` counts its iterations and `history` holds its `IterationRecord`s.
 
     Every kernel is shared by all simulations in the process: a second `Simulation` of the same
-    mesh compiles nothing and reuses the colouring and the adjacency (`topology`).
+    mesh compiles nothing and reuses the colouring and the adjacency (`topology`). Initialising Taichi
+    again (`ti.init`) frees every array made before: a simulation built before then refuses to step
+    (`ConfigError`); build a new one.
     """
 
     def __init__(self, mesh: TetMesh, material: Material, dt: float = 1 / 60, gravity=(0.0, 0.0, -9.81),
