@@ -111,14 +111,12 @@ def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     """ti.init on the CPU (or CUDA) in float64, optionally with a thread cap and the kernel profiler.
     A Taichi already running with these settings (a test calling `main()`) is kept, since ti.init frees
     every array made before it."""
-    from solver._ti import initialised_arch, ti
+    from solver._ti import running_config, ti
 
-    if initialised_arch() is not None:
-        cfg = ti.lang.impl.current_cfg()
-        if ((cfg.arch == ti.cuda) == (arch == "gpu") and cfg.default_fp == ti.f64
-                and cfg.kernel_profiler == kernel_profiler
-                and (not threads or cfg.cpu_max_num_threads == int(threads))):
-            return
+    cfg = running_config()
+    if (cfg is not None and (cfg.arch == ti.cuda) == (arch == "gpu") and cfg.default_fp == ti.f64
+            and cfg.kernel_profiler == kernel_profiler and (not threads or cfg.cpu_max_num_threads == int(threads))):
+        return
     kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)
     if threads:
         kwargs["cpu_max_num_threads"] = int(threads)

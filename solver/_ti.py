@@ -28,14 +28,21 @@ def runtime():
     return import_module(f"{NAME}.lang.impl").get_runtime()
 
 
-def initialised_arch():
-    """The arch the runtime was initialised on (``ti.cpu``, ``ti.cuda``, ...), or None before ``init``.
+def running_config():
+    """The compile configuration of the running Taichi (``arch``, ``default_fp``, ``kernel_profiler``,
+    ``cpu_max_num_threads``, ...), or None before ``init``.
 
     Taichi's runtime holds ``prog = None`` until ``ti.init``; Quadrants' ``prog`` property raises
     instead, so its private ``_prog`` is read.
     """
     prog = runtime()._prog if NAME == "quadrants" else runtime().prog
-    return None if prog is None else prog.config().arch
+    return None if prog is None else prog.config()
+
+
+def initialised_arch():
+    """The arch the runtime was initialised on (``ti.cpu``, ``ti.cuda``, ...), or None before ``init``."""
+    config = running_config()
+    return None if config is None else config.arch
 
 
 def is_arch_supported(arch) -> bool:
