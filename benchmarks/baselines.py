@@ -12,7 +12,7 @@ import numpy as np
 from solver._ti import ti
 
 from solver.vbd.layout import X
-from solver.vbd.vertex_solve import force_hessian
+from solver.vbd.vertex_solve import force_hessian, newton_step
 
 
 @ti.kernel
@@ -22,10 +22,7 @@ def _jacobi_step(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_orde
     """All free vertices from the same old positions, then x += omega dx: no colouring."""
     for k in range(color_order.shape[0]):
         f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
-        d = ti.Vector.zero(dtype, 3)
-        if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
-            d = ti.cast(H.inverse() @ f, dtype)
-        dx[k] = d
+        dx[k] = newton_step(f, H, dtype)
     for k in range(color_order.shape[0]):
         state[X, color_order[k]] += ti.cast(omega, dtype) * dx[k]
 

@@ -1,5 +1,7 @@
 """Contact between bodies, the term of G (solver/physics/contact.py): settings, exact distances, the
 two-stage barrier against finite differences, the ti.funcs against their numpy twins, friction."""
+from fractions import Fraction
+
 import numpy as np
 import pytest
 
@@ -33,12 +35,21 @@ def test_defaults_and_query_radius():
     ({"detection_interval": 0}, "detection_interval"), ({"detection_interval": 2.5}, "detection_interval"),
     ({"detection_interval": True}, "detection_interval"), ({"bound_relaxation": 0.5}, "bound_relaxation"),
     ({"bound_relaxation": 0.0}, "bound_relaxation"), ({"self_contact": 1}, "self_contact"),
-    ({"stiffness": float("nan")}, "stiffness"),
+    ({"stiffness": float("nan")}, "stiffness"), ({"stiffness": 10 ** 400}, "stiffness must be a finite number"),
+    ({"radius": 1e308}, "radius must be a finite number of metres whose 3 x"),
 ])
 def test_bad_settings_are_one_line_config_errors(kwargs, match):
     with pytest.raises(solver.ConfigError, match=match) as err:
         solver.Contact(**kwargs)
-    assert "\n" not in str(err.value)
+    assert "\n" not in str(err.value) and len(str(err.value)) < 200
+
+
+def test_numbers_of_any_real_type_are_stored_as_floats():
+    """A Fraction, an int or a numpy scalar is a number of N/m or m like any other (a Fraction raised
+    numpy's TypeError from isfinite)."""
+    c = solver.Contact(stiffness=Fraction(1, 2), radius=np.float32(0.25), friction=1)
+    assert (c.stiffness, c.radius, c.query_radius, c.friction) == (0.5, 0.25, 0.75, 1.0)
+    assert all(type(v) is float for v in (c.stiffness, c.radius, c.query_radius, c.friction))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -2,6 +2,7 @@
 kinetic energy, rebound), by an independent numpy crossing checker every step, and against the numpy
 Newton reference with contact; bad input in one line."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -83,6 +84,19 @@ def test_partners_solved_in_one_colour_do_not_overshoot():
             errors.append(solver.relative_error(sim.positions, x_star, x_n))
         assert sim.time < 0.1, "the balls never touched"
     assert max(errors) < 0.05, errors
+
+
+def test_a_body_started_deep_inside_the_radius_is_pushed_out():
+    """A cube 1 um above a fixed one (radius 2 mm): the barrier's block is stiff along the normal only
+    (eigenvalues about 4e3, 6e3 and 5e12 N/m), and a singular test on det H / ||H||^3 skipped those
+    vertices, so the gap shrank by the bound's factor every step (5.5e-7 m after one) until the cube was
+    thrown off 47 steps later. Solved, the first step pushes the cube out to most of the radius."""
+    mesh = solver.merge_meshes([_cube((0.0, 0.0, 0.0), cells=2), _cube((0.0, 0.0, 0.1 + 1e-6), cells=2)])
+    fixed = np.arange(mesh.n_vertices) < 27
+    sim = solver.Simulation(mesh, SOFT, dt=0.01, iterations=30, fixed=fixed, contact=solver.Contact())
+    sim.step()
+    assert sim.min_separation() > 0.5 * sim.contact.radius
+    _judge(sim)
 
 
 @pytest.mark.parametrize("rho,precision", [(None, "float64"), (0.8, "float64"), (None, "float32")])
@@ -220,7 +234,13 @@ def test_bad_contact_input_is_one_line():
         (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.05, 0.0, 0.0))]), SOFT,
                                    contact=solver.Contact()), "bodies 0 and 1 intersect"),
         (lambda: solver.Simulation(solver.merge_meshes([a, _cube((0.1, 0.0, 0.0))]), SOFT,
-                                   contact=solver.Contact()), "bodies 0 and 1 touch"),
+                                   contact=solver.Contact()), "bodies 0 and 1 touch or overlap"),
+        (lambda: solver.Simulation(solver.merge_meshes([_cube((0.0, 0.0, 0.0), size=0.3, cells=3),
+                                                        _cube((0.1, 0.1, 0.1), size=0.05, cells=2)]), SOFT,
+                                   contact=solver.Contact()), "body 1 lies inside body 0"),
+        (lambda: solver.Simulation(solver.merge_meshes([_cube((0.1, 0.1, 0.1), size=0.05, cells=2),
+                                                        _cube((0.0, 0.0, 0.0), size=0.3, cells=3)]), SOFT,
+                                   contact=solver.Contact()), "body 0 lies inside body 1"),
     ]
     sim = solver.Simulation(mesh, SOFT, contact=solver.Contact(friction=0.3))
     cases += [(lambda: setattr(sim, "contact", 1.0), "contact must be a solver.Contact"),
@@ -247,6 +267,73 @@ def test_bad_contact_input_is_one_line():
     assert "\n" not in str(err.value)
     with pytest.raises(solver.ConfigError, match="no contact term"):
         solver.Simulation(mesh, SOFT, method="pcg").contact = solver.Contact()
+
+
+def test_a_refused_set_positions_leaves_the_simulation_as_it_was():
+    """Positions that make two bodies intersect are refused, and the simulation keeps its own: it used to
+    keep the refused ones, and the next step diverged."""
+    mesh = solver.merge_meshes([_cube((0.0, 0.0, 0.0)), _cube((0.0, 0.0, 0.104))])
+    sim = solver.Simulation(mesh, SOFT, dt=0.01, contact=solver.Contact())
+    x = sim.positions
+    x[sim.bodies == 1, 2] -= 0.05
+    with pytest.raises(solver.ConfigError, match="intersect"):
+        sim.set_positions(x)
+    assert np.array_equal(sim.positions, mesh.vertices)
+    assert sim.min_separation() == pytest.approx(0.004)
+    sim.step()
+    _judge(sim)
+
+
+def _pusher(speed):
+    """A cube driven up at `speed` m/s (kinematic) into a free cube 5 mm above it, no gravity."""
+    mesh = solver.merge_meshes([_cube((0.0, 0.0, 0.0), cells=2), _cube((0.0, 0.0, 0.105), cells=2)])
+    low = np.arange(mesh.n_vertices) < 27
+    return solver.Simulation(mesh, SOFT, dt=0.01, iterations=20, gravity=(0, 0, 0), contact=solver.Contact(),
+                             kinematic=low, kinematic_motion=lambda t, rest: rest + (0.0, 0.0, speed * t))
+
+
+def test_kinematic_vertices_never_carry_a_surface_through_another():
+    """Kinematic vertices reach their targets in moves within the contact bounds: a pusher at 0.2 m/s
+    (2 mm a step, the radius) drives the free cube ahead of it without crossing; at 0.3 m/s the gap
+    ahead cannot open fast enough, and the step is refused in one line, back at x_n (it used to jump
+    through the gap and end in NaN). A far move of 5 cm a step arrives in several moves."""
+    sim = _pusher(0.2)
+    for _ in range(20):
+        sim.step()
+        _judge(sim)
+    assert sim.velocities[sim.bodies == 1, 2].mean() == pytest.approx(0.2, rel=0.1)
+    sim = _pusher(0.3)
+    sim.step()
+    x = sim.positions
+    with pytest.raises(solver.ConfigError, match="kinematic vertex .* would pass through a body") as err:
+        sim.step()
+    assert "\n" not in str(err.value)
+    assert np.array_equal(sim.positions, x) and sim.frame == 1
+    far = _pusher(-5.0)
+    far.step(2)
+    assert far.positions[:27, 2].min() == pytest.approx(-0.1)
+    assert far._contact_stage.detections >= 2
+
+
+@pytest.mark.slow
+def test_float32_contact_compiles_without_precision_warnings():
+    """Every kernel of a float32 simulation with contact, friction, Chebyshev, kinematic vertices, ground
+    and the orientation guard compiles without Taichi's 'may lose precision' warnings (a float32 norm is
+    a float64 in Taichi 1.7.4, and r / 2 too: they printed a dozen warnings at the first contact)."""
+    code = ("import numpy as np, solver\n"
+            "m = solver.merge_meshes([solver.box_mesh(size=(.1, .1, .1), cells=(2, 2, 2)),\n"
+            "                         solver.box_mesh(size=(.1, .1, .1), cells=(2, 2, 2), origin=(0, 0, .102))])\n"
+            "low = np.arange(m.n_vertices) < 27\n"
+            "sim = solver.Simulation(m, solver.Material(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),\n"
+            "    dt=0.01, iterations=10, contact=solver.Contact(friction=0.2), precision='float32',\n"
+            "    chebyshev_rho=0.8, keep_orientation=True, damping=0.01, ground=solver.Ground(-0.01, friction=0.3),\n"
+            "    kinematic=low, kinematic_motion=lambda t, r: r + [0, 0, 0.01 * t])\n"
+            "sim.step(3); sim.energy(); sim.residual(); print(sim.contact_count())\n")
+    env = dict(os.environ, TI_OFFLINE_CACHE="0")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ASSETS.parent, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert int(out.stdout.split()[-1]) > 0
+    assert "lose precision" not in out.stderr, out.stderr
 
 
 @pytest.mark.parametrize("mu", [0.8, 0.3])

@@ -316,6 +316,15 @@ def test_bad_states_and_call_order_raise_config_error():
         sim.run_iterations(1)
     with pytest.raises(solver.ConfigError):
         solver.Ground(stiffness=-1.0)
+    saved = sim.save_state()
+    wrong_shape = dict(saved, state=saved["state"][:, :3])
+    for bad in (None, {}, {"state": saved["state"]}, wrong_shape, dict(saved, time="noon"), [saved]):
+        with pytest.raises(solver.ConfigError, match="takes what save_state") as err:
+            sim.restore_state(bad)
+        assert "\n" not in str(err.value)
+    sim.step()
+    sim.restore_state(saved)
+    assert np.array_equal(sim.positions, sim.mesh.vertices) and sim.time == 0.0
 
 
 def test_importing_does_not_initialise_taichi_and_gpu_falls_back_with_one_warning():

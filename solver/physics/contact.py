@@ -59,12 +59,15 @@ class Contact:
     bound_relaxation: float = 0.45
 
     def __post_init__(self):
-        if self.query_radius is None:
-            object.__setattr__(self, "query_radius", 3 * self.radius if _is_number(self.radius) else None)
         for name in ("stiffness", "radius", "query_radius", "friction", "friction_speed", "bound_relaxation"):
             value = getattr(self, name)
-            if not _is_number(value) or not np.isfinite(value):
-                raise ConfigError(f"contact {name} must be a finite number, got {value!r}")
+            if not (name == "query_radius" and value is None):
+                object.__setattr__(self, name, _finite_number(name, value))
+        if self.query_radius is None:
+            if not np.isfinite(3 * self.radius):
+                raise ConfigError(f"contact radius must be a finite number of metres whose 3 x (the default "
+                                  f"query_radius) is finite too, got {self.radius!r}")
+            object.__setattr__(self, "query_radius", 3 * self.radius)
         if self.stiffness <= 0:
             raise ConfigError(f"contact stiffness must be > 0 N/m, got {self.stiffness}")
         if self.radius <= 0:
@@ -87,8 +90,19 @@ class Contact:
                               f"got {self.bound_relaxation}")
 
 
-def _is_number(value) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
+def _finite_number(name: str, value) -> float:
+    """value as a float, or a one-line `ConfigError` where it is not a finite real number (a bool, a
+    string, NaN, an integer too large for a float)."""
+    number = np.nan
+    if isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_)):
+        try:
+            number = float(value)
+        except OverflowError:
+            number = np.inf
+    if not np.isfinite(number):
+        shown = repr(value)
+        raise ConfigError(f"contact {name} must be a finite number, got {shown if len(shown) <= 40 else shown[:36] + ' ...'}")
+    return number
 
 
 class PairKind(IntEnum):
@@ -223,13 +237,13 @@ def barrier(d, k, r):
 
 @ti.func
 def barrier_derivatives(d, k, r):
-    """b'(d) in N and b''(d) in N/m; both 0 for d >= r."""
-    tau = r / 2
+    """b'(d) in N and b''(d) in N/m; both 0 for d >= r. tau = r/2 is written out (r / 2 would be of
+    Taichi's default float type, and float32 arguments would give float64 results)."""
     db = d * 0
     d2b = d * 0
-    if d < tau:
-        db = -k * tau * tau / d
-        d2b = k * tau * tau / (d * d)
+    if 2 * d < r:                               # d < tau: -k tau^2 / d and k tau^2 / d^2
+        db = -k * r * r / (4 * d)
+        d2b = k * r * r / (4 * d * d)
     elif d < r:
         db = -k * (r - d)
         d2b = k + d * 0
@@ -251,7 +265,7 @@ def contact_friction(u, n, w_j, f_n, mu, eps_u, dtype: ti.template()):
     w_j^2 k_f (I - n n^T), k_f = mu f_n f1(s)/s, s = |u_t|."""
     P = ti.Matrix.identity(dtype, 3) - n.outer_product(n)
     u_t = P @ u
-    k_f = mu * f_n * friction_scale(u_t.norm(), eps_u)
+    k_f = mu * f_n * ti.cast(friction_scale(u_t.norm(), eps_u), dtype)
     return -w_j * k_f * u_t, w_j * w_j * k_f * P
 
 

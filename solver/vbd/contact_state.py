@@ -47,12 +47,13 @@ from ..backend import running_on_cpu
 from ..errors import ConfigError
 from ..physics.contact import Contact
 from ..physics.contact_detection import ContactDetector
-from . import contact_sweep
+from . import contact_sweep, implicit_euler
 from .layout import STATE_ROWS, X, X_N
 from .vertex_solve import serial_sweep, unrolled_colors
 
 COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
 NEAR_HORIZON = 0.02         # x radius: the sweep's horizon (module docstring); measured 0.01-0.2 in a resting pile
+KINEMATIC_MOVES = 32        # `move_kinematic`: moves within the bounds before a kinematic target counts as unreachable
 
 
 class ContactStage:
@@ -156,20 +157,45 @@ class ContactStage:
         c = self.contact
         return 2 * contact_sweep.largest_move(state, row, self.x_full) >= c.query_radius - c.radius
 
-    def begin_step(self, state, color_order) -> None:
-        """Refresh the bounds at x_n and clamp the initial guess to them, then have the first iteration
-        refresh at the clamped guess, where kinematic vertices already sit at their targets (so the first
-        refresh lists no live pairs); no vertex has touched yet. The refresh at x_n is left out where it
-        would change nothing: no detection, and no bound it could set below the guess's move
+    def begin_step(self, state, color_order, kinematic_ids, kinematic_targets, n_kinematic: int) -> None:
+        """Refresh the bounds at x_n and clamp the initial guess to them, then move the kinematic vertices to
+        their targets (K,) 3-vectors within the bounds (`move_kinematic`), and have the first iteration
+        refresh at the clamped guess, where kinematic vertices sit at their targets (so the first refresh
+        lists no live pairs); no vertex has touched yet. The refresh at x_n is left out where it would
+        change nothing: no detection, and no bound it could set below the guess's move
         (`contact_sweep.guess_within_bounds`; the refresh at the guess then finds the same bounds and
-        pairs, module docstring). Called after the guess is set, so the row X_N holds x_n and X the guess."""
+        pairs, module docstring). Called after the guess is set, so the row X_N holds x_n and X the guess
+        (the kinematic vertices at their targets)."""
         contact_sweep.clear(self.touched)
         c = self.contact
+        contact_sweep.hold_kinematic(state, kinematic_ids, n_kinematic)
         if not contact_sweep.guess_within_bounds(state, color_order, self.x_det, self.x_full, self.bound,
                                                  c.bound_relaxation, c.query_radius - c.radius, self.dtype):
             self.refresh(state, X_N, lists=False)
             self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
+        if n_kinematic:
+            self.move_kinematic(state, kinematic_ids, kinematic_targets, n_kinematic)
         self._due = True
+
+    def move_kinematic(self, state, kinematic_ids, kinematic_targets, n_kinematic: int) -> None:
+        """Move the kinematic vertices from x_n to their targets in straight moves, each within the bounds,
+        refreshing between them: a prescribed motion then never carries a surface through another, however
+        far it goes in a step. Where the bodies in its way keep it from arriving (the gap ahead halves at
+        every move while the free vertices wait for the iterations), raise a one-line `ConfigError` and put
+        every vertex back at x_n."""
+        for _ in range(KINEMATIC_MOVES):
+            left = contact_sweep.advance_kinematic(state, kinematic_ids, kinematic_targets, n_kinematic, self.x_det,
+                                                   self.bound, self.dtype)
+            if left == 0:
+                return
+            self.refresh(state, X, lists=False)
+        x = state.to_numpy()[X][kinematic_ids.to_numpy()[:n_kinematic]]
+        short = np.linalg.norm(kinematic_targets.to_numpy()[:n_kinematic] - x, axis=1)
+        vertex = int(kinematic_ids.to_numpy()[int(np.argmax(short))])
+        implicit_euler.return_to_start(state)
+        raise ConfigError(f"kinematic vertex {vertex} would pass through a body this step: {short.max():.3g} m short "
+                          f"of its target after {KINEMATIC_MOVES} moves within the contact bounds; use a smaller dt "
+                          "or a slower kinematic_motion")
 
     def compile_kernels(self, mass, adjacency, params, n_colors: int, sweeps: bool) -> None:
         """Compile now the kernels a run may first launch long after its first step, so that the first
@@ -188,7 +214,7 @@ class ContactStage:
         no_jacobi = ti.ndarray(ti.i32, n_colors)
         pair = ti.Vector.ndarray(4, ti.i32, 1)
         for array in (state, vector, number, flag, slots, no_colors, no_jacobi, pair):
-            array.fill(0)
+            array.from_numpy(np.zeros_like(array.to_numpy()))     # (fill(0) compiles a float64 fill and warns)
         contact_sweep.largest_move(state, X, vector)
         if not sweeps:
             return
@@ -298,8 +324,13 @@ class ContactStage:
         if touching.any():
             p = int(np.flatnonzero(touching)[0])
             a, b = sorted((int(self.bodies[vertices[p, 0]]), int(self.bodies[vertices[p, 3]])))
-            raise ConfigError(f"bodies {a} and {b} touch (distance {distance[p]:.3g} m); "
+            raise ConfigError(f"bodies {a} and {b} touch or overlap (distance {distance[p]:.3g} m); "
                               "leave a gap between them before simulating")
+        inside = enclosed_body(x, self.detector.surface, self.bodies, self.free)
+        if inside is not None:
+            inner, outer = inside
+            raise ConfigError(f"body {inner} lies inside body {outer} (their surfaces do not meet, one encloses "
+                              "the other); move it out before simulating")
 
 
 def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray, self_contact: bool):
@@ -334,6 +365,36 @@ def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarra
     if len(hit) == 0:
         return None
     return tuple(sorted((int(bodies[edges[e[hit[0]], 0]]), int(bodies[triangles[t[hit[0]], 0]]))))
+
+
+def enclosed_body(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray):
+    """(inner, outer) of a body that lies inside another body's closed surface, else None; x (N, 3),
+    bodies (N,), free (N,) bool; pairs of bodies without a free vertex are skipped, as the pairs. For
+    surfaces that neither cross nor touch (`surface_crossing`, then the pairs' distances), one body is
+    inside another exactly when any one of its vertices is: decided for its first vertex by the winding
+    number of the other's surface around it, the sum of its triangles' solid angles over 4 pi (1 inside,
+    0 outside; Van Oosterom and Strackee's formula for each angle)."""
+    triangles = surface.triangles
+    n_bodies = int(bodies.max()) + 1
+    lower = np.full((n_bodies, 3), np.inf)
+    upper = np.full((n_bodies, 3), -np.inf)
+    np.minimum.at(lower, bodies, x)
+    np.maximum.at(upper, bodies, x)
+    moving = np.zeros(n_bodies, dtype=bool)
+    moving[bodies[free]] = True
+    first = np.unique(bodies, return_index=True)[1]
+    tri_body = bodies[triangles[:, 0]]
+    within = (lower[:, None] >= lower[None]).all(axis=2) & (upper[:, None] <= upper[None]).all(axis=2)
+    within &= (moving[:, None] | moving[None]) & ~np.eye(n_bodies, dtype=bool)
+    for inner, outer in zip(*np.nonzero(within)):
+        a, b, c = (x[triangles[tri_body == outer, k]] - x[first[inner]] for k in range(3))
+        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+        volume = np.einsum("ka,ka->k", a, np.cross(b, c))
+        den = la * lb * lc + np.einsum("ka,ka->k", a, b) * lc + np.einsum("ka,ka->k", b, c) * la \
+            + np.einsum("ka,ka->k", c, a) * lb
+        if abs(np.arctan2(volume, den).sum() / (2 * np.pi)) > 0.5:
+            return int(inner), int(outer)
+    return None
 
 
 def as_contact(value):

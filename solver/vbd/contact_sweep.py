@@ -86,14 +86,14 @@ def moves_since(state: ti.template(), x_det: ti.template(), v):
 
 @ti.func
 def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), horizon, crossed: ti.template(),
-                  serial: ti.template()):
+                  serial: ti.template(), dtype: ti.template()):
     """moved[i] = |x_i - x_det,i| in m for every vertex, so that the sweep reads a pair's `moves_since` as four
     numbers, and crossed[0] = 1 if a vertex has moved farther than the horizon (m), else 0 (both kept up to
     date by `apply_buffered`)."""
     crossed[0] = 0
     ti.loop_config(serialize=serial)
     for i in range(moved.shape[0]):
-        moved[i] = (state[X, i] - x_det[i]).norm()
+        moved[i] = ti.cast((state[X, i] - x_det[i]).norm(), dtype)
         if moved[i] > horizon:
             crossed[0] = 1
 
@@ -131,29 +131,30 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
     them (module docstring); else each block once, G's."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
+    kc, rr, mu_c, eps = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype), ti.cast(eps_u, dtype)
     active = 0
     for s in range(incidence_offsets[i], live_end[i] if every else near_end[i]):
         p = live_incidence[s] if every else near_incidence[s]
         v = pair[p]
-        if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), r, 0):
+        if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), rr, 0):
             continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
-        if d < r:
+        if d < rr:
             w_i = ti.cast(0, dtype)
             for j in ti.static(range(4)):
                 if v[j] == i:
                     w_i = w[j]
-            f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
-            if mu > 0:
-                db, d2b = barrier_derivatives(d, k_c, r)
-                f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu, eps_u, dtype)
+            f_c, H_c = contact_force_hessian(d, w_i, n, kc, rr)
+            if mu_c > 0:
+                db, d2b = barrier_derivatives(d, kc, rr)
+                f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu_c, eps, dtype)
                 f_c += f_f
                 H_c += H_f
             if ti.static(jacobi):
                 if partner_in_pass(color, v, i):
                     H_c *= 2
-            f += ti.cast(f_c, dtype)
-            H += ti.cast(H_c, dtype)
+            f += f_c
+            H += H_c
             active += 1
     return f, H, active
 
@@ -209,7 +210,7 @@ def bounded_step(state: ti.template(), offsets: ti.template(), others: ti.templa
 @ti.func
 def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
                    jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(),
-                   horizon, crossed: ti.template(), c, serial: ti.template()):
+                   horizon, crossed: ti.template(), c, serial: ti.template(), dtype: ti.template()):
     """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), their
     moved[i] = |x_i - x_det,i| (only vertices with pairs are read there), and crossed[0] = 1 where one has
     moved farther than the horizon (m). serial: in one loop on one thread."""
@@ -217,7 +218,7 @@ def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti
     for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
         i = jacobi[j]
         state[X, i] = target[i]
-        moved[i] = (target[i] - x_det[i]).norm()
+        moved[i] = ti.cast((target[i] - x_det[i]).norm(), dtype)
         if moved[i] > horizon:
             crossed[0] = 1
 
@@ -242,7 +243,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
     9 us in a settled pile of 64 balls). n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
-    measure_moves(state, x_det, moved, horizon, crossed, serial)
+    measure_moves(state, x_det, moved, horizon, crossed, serial, dtype)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for c in range(color_starts.shape[0] - 1):
@@ -252,7 +253,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     hits += 1
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, True)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, True,
+                           dtype)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
@@ -261,7 +263,8 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                                         moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     ti.atomic_add(hits, 1)
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, cpu)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, cpu,
+                           dtype)
     return hits
 
 
@@ -353,7 +356,7 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         ti.atomic_max(delta, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
-        moved[i] = (state[row, i] - x_det[i]).norm()
+        moved[i] = ti.cast((state[row, i] - x_det[i]).norm(), dtype)
     cap = ti.cast(q - 2 * delta, dtype)
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
@@ -452,6 +455,33 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
 
 
 @ti.kernel
+def hold_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(), n_kinematic: ti.i32):
+    """x_i = x_n,i for the first n_kinematic kinematic vertices (`advance_kinematic` moves them on)."""
+    for k in range(n_kinematic):
+        state[X, kinematic_ids[k]] = state[X_N, kinematic_ids[k]]
+
+
+@ti.kernel
+def advance_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(),
+                      kinematic_targets: ti.types.ndarray(), n_kinematic: ti.i32, x_det: ti.types.ndarray(),
+                      bound: ti.types.ndarray(), dtype: ti.template()) -> ti.f64:
+    """Move each of the first n_kinematic kinematic vertices straight towards its target (K,) 3-vectors,
+    as far as |x_i - x_det,i| <= b_i allows (the ball every vertex keeps to between refreshes, so no surface
+    passes through another); returns the largest distance in m still left to a target."""
+    left = ti.cast(0.0, ti.f64)
+    for k in range(n_kinematic):
+        i = kinematic_ids[k]
+        offset = kinematic_targets[k] - x_det[i]
+        length = offset.norm()
+        x = kinematic_targets[k]
+        if length > bound[i]:
+            x = x_det[i] + offset * ti.cast(bound[i] / length, dtype)
+        state[X, i] = x
+        ti.atomic_max(left, ti.cast((kinematic_targets[k] - x).norm(), ti.f64))
+    return left
+
+
+@ti.kernel
 def guess_within_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
                         x_full: ti.types.ndarray(), bound: ti.types.ndarray(), g: ti.f64, margin: ti.f64,
                         dtype: ti.template()) -> ti.i32:
@@ -530,7 +560,7 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
     pair is walked. The blocks are G's, each pair's once: the sweep's Jacobi factor (module docstring) is
     not part of G, and color (N,) goes unread."""
     result = ti.cast(0.0, ti.f64)
-    measure_moves(state, x_det, moved, 0.0, crossed, False)
+    measure_moves(state, x_det, moved, 0.0, crossed, False, dtype)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)

@@ -82,10 +82,9 @@ def largest_displacement(state: ti.types.ndarray()) -> ti.f64:
 @ti.kernel
 def end_step(state: ti.types.ndarray(), params: ti.types.ndarray()):
     """v_{n+1} = (x - x_n) / h, keeping v_n for the adaptive guess of the next step."""
-    inv_h = 1 / params[TIME_STEP]
     for i in range(state.shape[1]):
         state[V_PREV, i] = state[V, i]
-        state[V, i] = (state[X, i] - state[X_N, i]) * inv_h
+        state[V, i] = (state[X, i] - state[X_N, i]) / params[TIME_STEP]
 
 
 @ti.kernel

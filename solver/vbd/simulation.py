@@ -200,7 +200,8 @@ class Simulation(SimulationState):
             else:
                 implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
         if self._contact_stage is not None:                     # bounds at x_n, the guess clamped to them
-            self._contact_stage.begin_step(self.state, self._adjacency[0])
+            self._contact_stage.begin_step(self.state, self._adjacency[0], self._kin_ids, self._kin_targets,
+                                           self._n_kinematic)
         self._in_step = True
         self._iteration = 0
         self._omega = 1.0

@@ -191,9 +191,15 @@ class SimulationState:
         """Overwrite the positions (N, 3) in metres, e.g. to start from a deformed state (with contact:
         bodies that intersect or touch there raise `ConfigError`)."""
         x = self._checked_state(x, "positions")
+        before = self.positions
         self._set_rows({L.X: x})
         if self._contact_stage is not None:
-            self._contact_stage.check_apart(self.state, x)
+            try:
+                self._contact_stage.check_apart(self.state, x)
+            except ConfigError:                 # refused: the simulation keeps the positions it had
+                self._set_rows({L.X: before})
+                self._contact_stage.detect(self.state, L.X)
+                raise
 
     # -----------------------------------------------------------------------------------------
     # Contact between bodies (`contact_state.ContactStage`, issue 17)
@@ -281,8 +287,16 @@ class SimulationState:
 
     def restore_state(self, saved: dict) -> None:
         """Go back to a state returned by `save_state` of this simulation."""
-        self.state.from_numpy(saved["state"])
-        self.time, self.frame = saved["time"], saved["frame"]
+        shape = tuple(self.state.shape) + (3,)
+        try:
+            state, time, frame = np.asarray(saved["state"]), float(saved["time"]), int(saved["frame"])
+        except (TypeError, KeyError, ValueError, IndexError):
+            state = None
+        if state is None or state.shape != shape or not np.isfinite(state).all():
+            raise ConfigError("restore_state() takes what save_state() of this simulation returned "
+                              f"(a dict with 'state' of shape {shape}, 'time' and 'frame')")
+        self.state.from_numpy(state.astype(self._np_dtype))
+        self.time, self.frame = time, frame
         self._in_step = False
 
     def reset(self) -> None:

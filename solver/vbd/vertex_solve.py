@@ -27,6 +27,7 @@ from ..physics.material import vertex_force_hessian
 
 assert ADJ_FLOATS == VOLUME + 1
 J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a tenth of its rest volume
+MAX_CONDITION_F64, MAX_CONDITION_F32 = 1e12, 1e6     # `max_condition`
 
 
 # Below this many tets a CPU sweep runs each colour on one thread: the barrier that ends a parallel colour
@@ -105,6 +106,19 @@ def force_hessian(state: ti.template(), mass: ti.template(), color_order: ti.tem
 
 
 @ti.func
+def max_condition(dtype: ti.template()):
+    """The largest condition number of H_i that `newton_step` solves: a 3x3 solve loses about
+    log10(cond) of the precision's digits, so float64 keeps at least 4 of its 16 and float32 1 of its 7.
+    A contact block is stiff along its normal only (the barrier's k against the material's soft
+    directions): cond ~ 1e9 is common there and float64 solves it; a test on det H_i / ||H_i||^3, which
+    falls as cond^-2, would skip that vertex and freeze it against its partner."""
+    limit = MAX_CONDITION_F32
+    if ti.static(dtype == ti.f64):
+        limit = MAX_CONDITION_F64
+    return limit
+
+
+@ti.func
 def step_limit(state: ti.template(), others: ti.template(), adj_f: ti.template(), offsets: ti.template(), i, k, dx):
     """The largest alpha in [0, 1] for which the step x_i + alpha dx keeps det F of every tet around
     vertex i (slot k) at or above J_MIN, or does not shrink it further where it already is below.
@@ -125,11 +139,13 @@ def step_limit(state: ti.template(), others: ti.template(), adj_f: ti.template()
 @ti.func
 def newton_step(f, H, dtype: ti.template()):
     """dx = H_i^-1 f_i, the 3x3 Newton step of a vertex with force f_i (3,) and Hessian H_i (3x3), or 0
-    for a (near) singular H_i (VBD Alg. 1, lines 7-10)."""
+    where H_i is singular or too ill-conditioned to solve in this precision (VBD Alg. 1, lines 7-10):
+    its condition number ||H_i||_F ||H_i^-1||_F at or above `max_condition(dtype)`."""
     # BEGIN SOLUTION task=vbd_sweep
     dx = ti.Vector.zero(dtype, 3)
-    if ti.abs(H.determinant()) > 1e-15 * H.norm_sqr() ** 1.5:
-        dx = ti.cast(H.inverse() @ f, dtype)
+    H_inv = H.inverse()
+    if H.norm() * H_inv.norm() < max_condition(dtype):
+        dx = ti.cast(H_inv @ f, dtype)
     # END SOLUTION
     return dx
 
