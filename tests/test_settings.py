@@ -152,3 +152,16 @@ def test_live_assignment_goes_through_settings():
     with pytest.raises(dataclasses.FrozenInstanceError):
         sim.settings.dt = 0.02
     assert sim.settings == solver.Settings(dt=0.01, iterations=7)
+
+
+def test_a_misspelt_live_setting_is_refused_with_the_close_name():
+    """`sim.itterations = 5` used to make a new attribute and leave the iterations as they were."""
+    sim = _simulation("vbd", dict(iterations=3))
+    with pytest.raises(solver.ConfigError, match="no setting 'itterations'; did you mean 'iterations'") as err:
+        sim.itterations = 5
+    assert "\n" not in str(err.value)
+    with pytest.raises(solver.ConfigError, match="no setting 'speed'"):
+        sim.speed = 2
+    assert sim.iterations == 3 and not hasattr(sim, "itterations")
+    sim.iterations = 5
+    assert sim.iterations == 5

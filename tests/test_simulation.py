@@ -338,6 +338,7 @@ def test_importing_does_not_initialise_taichi_and_gpu_falls_back_with_one_warnin
         "    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3, 1000.0), arch='gpu', iterations=2)\n"
         "sim.step()\n"
         "import taichi as ti\n"
+        "assert sim.arch == ('gpu' if get_runtime().prog.config().arch == ti.cuda else 'cpu'), sim.arch\n"
         "print(len(w), get_runtime().prog.config().arch, w[0].message if w else '')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -18,6 +18,7 @@ is elsewhere: the settings and what each method makes of them in `settings.py`, 
 `state.py`, the steps of the global methods in `global_methods.py`.
 """
 from dataclasses import fields, replace
+from difflib import get_close_matches
 from typing import Callable, Optional
 
 import numpy as np
@@ -81,7 +82,7 @@ class Simulation(SimulationState):
     (boolean (N,) mask or index array); kinematic: vertices whose positions `kinematic_motion(t, rest)`
     scripts, rest being their (K, 3) rest positions and the result their (K, 3) positions at time t;
     precision: "float64" or "float32"; arch: "cpu", "gpu" or None (the backend Taichi already runs on,
-    else the CPU); coloring_order: a `VertexOrder` or its name;
+    else the CPU; `sim.arch` then says which of "cpu" and "gpu" runs, after any fallback); coloring_order: a `VertexOrder` or its name;
     method: the solver of each step, a `Method` or its name: "vbd" (default), "newton" (projected
     Newton, sparse direct solve), "pcg" (Newton-PCG with VBD's colour sweep as preconditioner),
     "multilevel" (two-level VBD: cycles of 2 sweeps + coarse correction + 2 sweeps), "auto" (chosen
@@ -149,7 +150,7 @@ class Simulation(SimulationState):
         self._check(settings)
 
         ensure_taichi(arch)
-        self.arch = arch
+        self.arch = "cpu" if running_on_cpu() else "gpu"
         self._serial_sweep = vertex_solve.serial_sweep(mesh.n_tets, running_on_cpu())
         require_implemented(vertex_force_hessian, vertex_solve.force_hessian, vertex_solve.newton_step)
         self.coloring: Coloring = color_vertices(mesh.tets, n, coloring_order, key=mesh.topology_key())
@@ -444,9 +445,14 @@ class Simulation(SimulationState):
         return wave_cells(self.mesh, self._material, self.dt)
 
     def __setattr__(self, name, value):
-        if name in _READ_ONLY and getattr(self, "_constructed", False):
-            raise ConfigError(f"Simulation.{name} ({_READ_ONLY[name]}) is fixed at construction; "
-                              f"build a new Simulation with the {name} you want")
+        if getattr(self, "_constructed", False):
+            if name in _READ_ONLY:
+                raise ConfigError(f"Simulation.{name} ({_READ_ONLY[name]}) is fixed at construction; "
+                                  f"build a new Simulation with the {name} you want")
+            if not name.startswith("_") and name not in self.__dict__ and not hasattr(type(self), name):
+                close = get_close_matches(name, [n for n in dir(self) if not n.startswith("_")], n=1)
+                hint = f"did you mean {close[0]!r}?" if close else "its live settings are the fields of solver.Settings"
+                raise ConfigError(f"Simulation has no setting {name!r}; {hint}")
         super().__setattr__(name, value)
 
 
