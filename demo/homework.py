@@ -584,23 +584,63 @@ def _task_files(task: Task) -> dict:
     return files
 
 
+# The top folders of the task files: a folder holding one of them is a submission, with or without the marker
+# (a zip or LMS download often loses hidden files).
+TASK_FOLDERS = tuple(sorted({Path(spec.split(":")[0]).parts[0] for task in TASKS for spec in task.functions}))
+# A class folder's subfolders that are never a student's: hidden ones (.git, ...) and the metadata folder
+# macOS puts into zip files.
+NOT_STUDENTS = re.compile(r"\..*|__MACOSX")
+
+
 def _is_starter(folder: Path) -> bool:
-    return (folder / STARTER_MARKER).is_file() and (folder / "solver").is_dir()
+    """Whether `folder` is a student's starter: it holds the marker or a folder of task files."""
+    return (folder / STARTER_MARKER).is_file() or any((folder / name).is_dir() for name in TASK_FOLDERS)
 
 
-def submissions(path: Path) -> dict:
-    """{name: folder} of the starters to grade: `path` itself, or the starters directly inside it."""
+def _task_folder_names() -> str:
+    return " or ".join(f"{name}/" for name in TASK_FOLDERS)
+
+
+def _not_a_starter(folder: Path) -> str:
+    """Why the folder `folder` of a class cannot be graded, in words that start with its name."""
+    name = f"{folder.name}/"
+    entries = sorted(folder.iterdir())
+    if not entries:
+        return f"{name} is empty"
+    nested = [entry for entry in entries if entry.is_dir() and _is_starter(entry)]
+    if nested:
+        return (f"{name} holds a starter one level deeper, in {name}{nested[0].name}/; move its contents up into "
+                f"{name} to grade it")
+    return f"{name} is not a homework starter (no {STARTER_MARKER}, {_task_folder_names()} in it)"
+
+
+def submissions(path: Path) -> tuple:
+    """({name: folder} of the starters to grade, {name: why not} of a class's folders that cannot be
+    graded): `path` itself when it is a starter, else every folder directly inside it (a class) but
+    hidden ones and __MACOSX/."""
     if not path.exists():
         raise _error(f"{path} does not exist; pass a student's starter folder or a folder of them")
     if not path.is_dir():
         raise _error(f"{path} is not a folder; pass a student's starter folder or a folder of them")
     if _is_starter(path):
-        return {path.resolve().name: path}
-    found = {child.name: child for child in sorted(path.iterdir()) if child.is_dir() and _is_starter(child)}
+        return {path.resolve().name: path}, {}
+    found, skipped = {}, {}
+    for child in sorted(path.iterdir(), key=lambda child: child.name):
+        if not child.is_dir() or NOT_STUDENTS.fullmatch(child.name):
+            continue
+        try:
+            if _is_starter(child):
+                found[child.name] = child
+            else:
+                skipped[child.name] = _not_a_starter(child)
+        except OSError as e:
+            skipped[child.name] = f"{child.name}/ cannot be read ({e.strerror or e})"
     if not found:
-        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER} and solver/) and holds none; "
-                     "pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
-    return found
+        why = f" ({next(iter(skipped.values()))}{f', and {len(skipped) - 1} more' if len(skipped) > 1 else ''})" \
+            if skipped else ""
+        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER}, {_task_folder_names()}) and holds none"
+                     f"{why}; pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
+    return found, skipped
 
 
 class Grader:
@@ -722,26 +762,45 @@ def _points(value: float) -> str:
 
 
 def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1) -> dict:
-    """Grade a starter folder or a folder of them, `jobs` graded runs at once; print each task's points and
-    `total: NN/100` last. Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file`
-    gets the same."""
-    folders = submissions(Path(submission))
+    """Grade a starter folder or a class (a folder of them), `jobs` graded runs at once; print each task's
+    points and `total: NN/100` last. Every folder of a class is graded or reported: one that is not a
+    starter (see `submissions`) gets one line saying why and 0 points. Returns {name: {"tasks": {task:
+    TaskGrade fields}, "earned", "total"}, plus "not_graded": why for a folder that was not graded};
+    `json_file` gets the same."""
+    folders, skipped = submissions(Path(submission))
+    selected = [task for task in TASKS if not tasks or task.id in tasks]
     book = {}
 
+    def entry(grades):
+        return {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
+                "earned": sum(g.earned for g in grades), "total": sum(g.points for g in grades)}
+
     def report(name, grades):
-        if len(folders) > 1:
+        if len(folders) + len(skipped) > 1:
             print(f"== {name}")
         for g in grades:
             why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
             print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
-        earned = sum(g.earned for g in grades)
-        total = sum(g.points for g in grades)
-        print(f"total: {_points(earned)}/{total}", flush=True)
-        book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
-                      "earned": earned, "total": total}
+        book[name] = entry(grades)
+        print(f"total: {_points(book[name]['earned'])}/{book[name]['total']}", flush=True)
+
+    def not_graded(name):
+        why = skipped[name]
+        book[name] = {**entry([TaskGrade(task.id, 0.0, task.points, 0, 0, why) for task in selected]),
+                      "not_graded": why}
+        print(f"== {name}: 0/{book[name]['total']}, not graded: {why}", flush=True)
+
+    waiting = sorted(skipped)
+
+    def done(name, grades):        # the class in name order, the folders not graded among the others
+        while waiting and waiting[0] < name:
+            not_graded(waiting.pop(0))
+        report(name, grades)
 
     with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
-        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=report)
+        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=done)
+    while waiting:
+        not_graded(waiting.pop(0))
     if json_file is not None:
         try:
             Path(json_file).write_text(json.dumps(book, indent=2) + "\n", encoding="utf-8")
@@ -757,7 +816,12 @@ def grade_main(argv) -> int:
         prog="python -m demo homework grade", formatter_class=HelpFormatter,
         description="Grade homework for marks: copy only the task functions of each submission into a fresh "
                     "starter built from this project (one per task, the other tasks' solutions in place) and "
-                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100.")
+                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100. "
+                    "A class folder: every folder in it is a submission (hidden folders and __MACOSX/ aside). "
+                    f"One holding {_task_folder_names()} is graded, with or without its {STARTER_MARKER} (a zip "
+                    "or LMS download may drop that hidden file); any other (empty, or the starter one level "
+                    "deeper) gets one line saying why and 0 points in the gradebook, and the command exits "
+                    "with status 1 once the rest is graded.")
     parser.add_argument("submission", type=Path, help="a student's starter folder, or a folder of them (a class)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE",
                         help="also write the gradebook as JSON (default: none)")
@@ -769,7 +833,12 @@ def grade_main(argv) -> int:
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be 1 or more, got {args.jobs}")
-    grade(args.submission, args.json, args.task, jobs=args.jobs)
+    book = grade(args.submission, args.json, args.task, jobs=args.jobs)
+    missed = [name for name, entry in book.items() if "not_graded" in entry]
+    if missed:
+        print(f"not graded: {', '.join(missed)} ({len(missed)} of {len(book)} folders, 0 points each; "
+              "see their lines above)", file=sys.stderr)
+        return 1
     return 0
 
 

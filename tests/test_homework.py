@@ -426,11 +426,63 @@ def test_starter_has_no_global_solver(starter, tmp_path):
     (lambda tmp: tmp / "absent", "does not exist"),
     (lambda tmp: (tmp / "file.txt").write_text("x") and tmp / "file.txt", "is not a folder"),
     (lambda tmp: (tmp / "empty").mkdir() or tmp / "empty", "is not a homework starter"),
+    (lambda tmp: fake_starter(tmp / "class" / "dave" / "hw").parent.parent, "dave/ holds a starter one level deeper"),
 ])
 def test_grade_refuses_what_is_not_a_submission(tmp_path, capsys, make, match):
     assert main(["homework", "grade", str(make(tmp_path))]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and match in err, err
+
+
+def fake_starter(folder: Path, marker=True) -> Path:
+    """What `submissions` looks at in a starter: solver/ and exercises/, and the marker file."""
+    for name in ("solver", "exercises"):
+        (folder / name).mkdir(parents=True)
+    if marker:
+        (folder / homework.STARTER_MARKER).write_text("{}")
+    return folder
+
+
+class FullMarksGrader:
+    """Stands in for `homework.Grader`: every submission it is given gets full points."""
+
+    def __init__(self, scratch, root, jobs):
+        pass
+
+    def grade_all(self, submissions, tasks=None, done=None):
+        for name in submissions:
+            done(name, [homework.TaskGrade(t.id, float(t.points), t.points, 1, 1, "")
+                        for t in homework.TASKS if not tasks or t.id in tasks])
+
+
+def test_every_folder_of_a_class_is_graded_or_reported(tmp_path, capsys, monkeypatch):
+    """A starter that lost its hidden marker in a download is graded; one nested a level deeper and an
+    empty folder get a line each and 0 points with the reason in the gradebook, and the exit status says
+    so. Hidden folders, __MACOSX/ and files are not students."""
+    klass = tmp_path / "class"
+    fake_starter(klass / "ann")
+    fake_starter(klass / "carl", marker=False)
+    fake_starter(klass / "dave" / "hw")
+    (klass / "erin").mkdir()
+    for other in (".git", "__MACOSX"):
+        (klass / other).mkdir()
+    (klass / "marks.csv").write_text("name,points\n")
+    monkeypatch.setattr(homework, "Grader", FullMarksGrader)
+    book = tmp_path / "book.json"
+    assert main(["homework", "grade", str(klass), "--task", "coloring", "--json", str(book)]) == 1
+    out, err = capsys.readouterr()
+    assert out.splitlines() == [
+        "== ann", "coloring           15/15  1/1 tests passed", "total: 15/15",
+        "== carl", "coloring           15/15  1/1 tests passed", "total: 15/15",
+        "== dave: 0/15, not graded: dave/ holds a starter one level deeper, in dave/hw/; move its contents up "
+        "into dave/ to grade it",
+        "== erin: 0/15, not graded: erin/ is empty"], out
+    assert err == "not graded: dave, erin (2 of 4 folders, 0 points each; see their lines above)\n", err
+    gradebook = json.loads(book.read_text())
+    assert list(gradebook) == ["ann", "carl", "dave", "erin"]
+    assert [gradebook[name]["earned"] for name in gradebook] == [15, 15, 0, 0]
+    assert gradebook["erin"]["not_graded"] == gradebook["erin"]["tasks"]["coloring"]["reason"] == "erin/ is empty"
+    assert "not_graded" not in gradebook["carl"]
 
 
 @pytest.mark.parametrize("jobs", ["0", "-2"])
