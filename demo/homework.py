@@ -761,13 +761,29 @@ def _points(value: float) -> str:
     return f"{value:.0f}" if abs(value - round(value)) < 1e-9 else f"{value:.1f}"
 
 
-def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1) -> dict:
+def _check_gradebook(json_file: Path, overwrite: bool):
+    """Refuse a --json path that cannot take the gradebook, before any grading: a folder, one whose folder
+    does not exist, or an existing file unless `overwrite`."""
+    parent = json_file.parent
+    if json_file.is_dir():
+        raise _error(f"--json {json_file} is a folder; name a file, for example --json {json_file / 'gradebook.json'}")
+    if not parent.is_dir():
+        raise _error(f"--json {json_file}: {parent} {'is not a folder' if parent.exists() else 'does not exist'}; "
+                     "name a file in an existing folder")
+    if json_file.exists() and not overwrite:
+        raise _error(f"--json {json_file} already exists; pass --overwrite to replace it or name another file")
+
+
+def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1,
+          overwrite: bool = False) -> dict:
     """Grade a starter folder or a class (a folder of them), `jobs` graded runs at once; print each task's
     points and `total: NN/100` last. Every folder of a class is graded or reported: one that is not a
     starter (see `submissions`) gets one line saying why and 0 points. Returns {name: {"tasks": {task:
     TaskGrade fields}, "earned", "total"}, plus "not_graded": why for a folder that was not graded};
-    `json_file` gets the same."""
+    `json_file` gets the same (an existing one only with `overwrite`)."""
     folders, skipped = submissions(Path(submission))
+    if json_file is not None:
+        _check_gradebook(Path(json_file), overwrite)
     selected = [task for task in TASKS if not tasks or task.id in tasks]
     book = {}
 
@@ -825,6 +841,7 @@ def grade_main(argv) -> int:
     parser.add_argument("submission", type=Path, help="a student's starter folder, or a folder of them (a class)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE",
                         help="also write the gradebook as JSON (default: none)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json FILE")
     parser.add_argument("--task", action="append", choices=list(TASKS_BY_ID), default=None,
                         help="grade only this task (repeatable; default: all tasks)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="N",
@@ -833,7 +850,7 @@ def grade_main(argv) -> int:
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be 1 or more, got {args.jobs}")
-    book = grade(args.submission, args.json, args.task, jobs=args.jobs)
+    book = grade(args.submission, args.json, args.task, jobs=args.jobs, overwrite=args.overwrite)
     missed = [name for name, entry in book.items() if "not_graded" in entry]
     if missed:
         print(f"not graded: {', '.join(missed)} ({len(missed)} of {len(book)} folders, 0 points each; "

@@ -485,6 +485,32 @@ def test_every_folder_of_a_class_is_graded_or_reported(tmp_path, capsys, monkeyp
     assert "not_graded" not in gradebook["carl"]
 
 
+@pytest.mark.parametrize("where, match", [
+    ("notes.txt", "notes.txt already exists; pass --overwrite to replace it"),
+    (".", "is a folder; name a file"),
+    ("absent/book.json", "absent does not exist"),
+    ("notes.txt/book.json", "notes.txt is not a folder"),
+])
+def test_grade_checks_the_gradebook_path_before_grading(tmp_path, capsys, monkeypatch, where, match):
+    """--json refuses an existing file (without --overwrite), a folder and a path in no folder, in one line
+    and before any grading; the user's file is untouched."""
+    (tmp_path / "notes.txt").write_text("precious")
+    graded = []
+    monkeypatch.setattr(homework, "Grader", lambda *args, **kw: graded.append(args) or FullMarksGrader(*args, **kw))
+    assert main(["homework", "grade", str(fake_starter(tmp_path / "ann")), "--json", str(tmp_path / where)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err, err
+    assert graded == [] and (tmp_path / "notes.txt").read_text() == "precious"
+
+
+def test_grade_replaces_a_gradebook_with_overwrite(tmp_path, capsys, monkeypatch):
+    book = tmp_path / "book.json"
+    book.write_text("last term's")
+    monkeypatch.setattr(homework, "Grader", FullMarksGrader)
+    assert main(["homework", "grade", str(fake_starter(tmp_path / "ann")), "--json", str(book), "--overwrite"]) == 0
+    assert json.loads(book.read_text())["ann"]["earned"] == 100
+
+
 @pytest.mark.parametrize("jobs", ["0", "-2"])
 def test_grade_refuses_fewer_than_one_job(starter, capsys, jobs):
     assert main(["homework", "grade", str(starter), "--jobs", jobs]) == 2
