@@ -91,6 +91,15 @@ class Task:
     depends: tuple = ()          # tasks whose code the graded tests of this one also run
     details: str = ""            # a paragraph for the student README
     notes: dict = field(default_factory=dict)   # function name -> extra comment lines in the starter
+    chapters: dict = field(default_factory=dict)   # function name -> its chapter, where that is not `chapter`
+
+    def chapter_of(self, function: str) -> str:
+        """The chapter that derives `function` (a qualified or plain name), which its TODO points at."""
+        return self.chapters.get(function.rsplit(".", 1)[-1], self.chapter)
+
+    def all_chapters(self) -> list:
+        """Every chapter the task's TODOs point at, in the notes' order."""
+        return sorted({self.chapter, *self.chapters.values()})
 
 
 TASKS = (
@@ -115,7 +124,7 @@ TASKS = (
         details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
                 "colour not used by any neighbour (CSR arrays `offsets`, `neighbours`); keep `n_colors` "
                 "up to date: `_greedy` returns it, `color_vertices` refuses a mesh that needs more than 64 "
-                "colours by it, and a graded test checks it (chapter 4, \"Greedy graph colouring\").",
+                "colours by it, and a graded test checks it (chapter 4, \"Greedy colouring\").",
         notes={"_greedy": ["v = order[k] is the vertex; its neighbours are neighbours[offsets[v]:offsets[v + 1]]; "
                            "colors[u] is -1 until u is coloured.",
                            "Keep n_colors = the number of colours used so far; the function returns it."]},
@@ -161,7 +170,10 @@ TASKS = (
     ),
     Task(
         id="analysis", title="Derivations checked numerically, and measurements of your solver", points=15,
-        chapter="lecture_notes/05-information-propagation.md",
+        chapter="lecture_notes/03-coordinate-descent.md",
+        chapters={"jacobi_against_coloring": "lecture_notes/04-parallelism.md",
+                  "iterations_needed": "lecture_notes/05-information-propagation.md",
+                  "rho_residuals": "lecture_notes/06-what-helps.md", "best_rho": "lecture_notes/06-what-helps.md"},
         functions=("exercises/analysis.py:dF_dx", "exercises/analysis.py:hessian_eigenvalues",
                    "exercises/analysis.py:iterations_needed", "exercises/analysis.py:rho_residuals",
                    "exercises/analysis.py:best_rho", "exercises/analysis.py:jacobi_against_coloring"),
@@ -258,7 +270,7 @@ def _error(message):
 def todo_message(task: Task, function: str) -> str:
     """The text of the NotImplementedError that replaces a region of `task` inside `function`."""
     short = function.rsplit(".", 1)[-1]
-    message = f"TODO: {task.id}: {short}: {task.what[short]}; see {task.chapter}"
+    message = f"TODO: {task.id}: {short}: {task.what[short]}; see {task.chapter_of(function)}"
     assert '"' not in message and "\\" not in message, message
     return message
 
@@ -345,7 +357,7 @@ def strip_regions(text: str, regions) -> str:
         short = region.function.rsplit(".", 1)[-1]
         comment = [f"TODO(task {region.task.id}, {region.task.points} points): {region.task.what[short]}.",
                    *region.task.notes.get(short, []),
-                   f"Replace the raise below with your code; see {region.task.chapter}."]
+                   f"Replace the raise below with your code; see {region.task.chapter_of(region.function)}."]
         for paragraph in comment:
             for line in textwrap.wrap(paragraph, width=max(40, 100 - len(indent)), break_on_hyphens=False):
                 out.append(f"{indent}# {line}\n")
@@ -408,7 +420,8 @@ def _student_readme(root: Path, regions) -> str:
         needs = ", ".join(f"`{d}`" for d in task.depends) or "-"
         rows.append(f"| {n} | `{task.id}` | {task.title} | {task.points} | {', '.join(places)} | {needs} |")
         sections.append(f"### {n}. {task.title} (`{task.id}`, {task.points} points)\n\n{task.details}\n\n"
-                        f"Where: {', '.join(places)}. Read: [{task.chapter}]({task.chapter}).\n")
+                        f"Where: {', '.join(places)}. Read: "
+                        f"{', '.join(f'[{chapter}]({chapter})' for chapter in task.all_chapters())}.\n")
     total = sum(task.points for task in TASKS)
     template = (root / README_TEMPLATE).read_text(encoding="utf-8")
     table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"

@@ -74,6 +74,39 @@ def test_regions_become_todo_raises(starter):
             assert not re.match(r"\s*# (BEGIN|END) SOLUTION", lines[number - 1]), f"marker left in {name}:{number}"
 
 
+# What a chapter must say where a task function's name is not in it: the topic the function is cited for.
+TOPICS = {"dF_dx": "affine", "hessian_eigenvalues": "positive definite", "iterations_needed": "N_c",
+          "rho_residuals": "spectral radius", "best_rho": "spectral radius", "jacobi_against_coloring": "under-relax"}
+
+
+def test_every_chapter_a_todo_or_task_names_covers_it(starter):
+    """Each TODO (its raise and its comment in the starter) names one chapter, which holds the function's
+    name or its topic; every chapter and quoted section a task's README text names exists."""
+    notes = REPO / "lecture_notes"
+    for region in homework.all_regions(REPO):
+        short = region.function.rsplit(".", 1)[-1]
+        chapter = region.task.chapter_of(region.function)
+        message = homework.todo_message(region.task, region.function)
+        cited = re.findall(r"lecture_notes/\S+?\.md", message)
+        assert cited == [chapter], (short, cited)
+        text = (REPO / chapter).read_text()
+        covered = re.search(rf"\b{re.escape(short)}\b", text) is not None or TOPICS[short] in text
+        assert covered, f"{chapter} has neither {short} nor its topic {TOPICS.get(short)!r}"
+        lines = (starter / region.path).read_text().splitlines()
+        at = next(n for n, line in enumerate(lines) if message in line)
+        first = at
+        while lines[first - 1].lstrip().startswith("#"):
+            first -= 1
+        comment = " ".join(line.strip().lstrip("# ") for line in lines[first:at])
+        assert f"see {chapter}." in comment, (short, comment)
+    for task in homework.TASKS:
+        for number, section in re.findall(r'chapter (\d+)(?:, "([^"]+)")?', task.details):
+            (path,) = notes.glob(f"{int(number):02d}-*.md")
+            headed = not section or re.search(rf"^#+ {re.escape(section)}$", path.read_text(), flags=re.M)
+            assert headed, f"task {task.id} quotes a section {section!r} that {path.name} does not have"
+        assert all((REPO / chapter).is_file() for chapter in task.all_chapters()), task.id
+
+
 def test_no_solution_line_survives(starter):
     """Every line of a solution region appears in the starter no more often than it does outside the
     regions in the solution (lines like `i = self.color_order[k]` also occur elsewhere)."""
