@@ -444,10 +444,30 @@ def _pytest_ini(text: str) -> str:
 
 
 def _without_global_solvers(text: str) -> str:
-    """A requirements or pyproject text without the lines naming the global solvers or their packages."""
+    """A requirements or pyproject text without the lines naming the global solvers or their packages. A
+    comment block (comment lines in a row) goes whole: when one of its lines names them, and with the line
+    right after it, which it describes, when that line goes."""
     dropped = (*GLOBAL_SOLVER_PACKAGES, "solver/newton", "solver.newton")
-    kept = [line for line in text.splitlines(keepends=True) if not any(word in line for word in dropped)]
+
+    def names(lines):
+        return any(word in line for line in lines for word in dropped)
+
+    kept, block = [], []
+    for line in text.splitlines(keepends=True):
+        if line.lstrip().startswith("#"):
+            block.append(line)
+            continue
+        if not names([line]):
+            kept += [] if names(block) else block
+            kept.append(line)
+        block = []
+    kept += [] if names(block) else block
     return "".join(kept).replace(', "benchmarks"]', "]")
+
+
+def _is_requirement(line: str) -> bool:
+    """Whether a requirements-file line asks for a package (not blank, a comment or an -r include)."""
+    return bool(line.strip()) and not line.lstrip().startswith(("#", "-r", "--requirement"))
 
 
 def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: bool = False):
@@ -479,8 +499,7 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
             elif rel.name == "pyproject.toml" or (rel.name.startswith("requirements") and rel.suffix == ".txt"):
                 text = _without_global_solvers((root / rel).read_text(encoding="utf-8"))
-                if rel.suffix == ".txt" and not any(line.strip() and not line.lstrip().startswith("#")
-                                                    for line in text.splitlines()):
+                if rel.suffix == ".txt" and not any(_is_requirement(line) for line in text.splitlines()):
                     continue          # a requirements file of the global solvers only
                 target.write_text(text, encoding="utf-8")
             else:

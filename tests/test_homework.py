@@ -455,6 +455,38 @@ def test_starter_has_no_global_solver(starter, tmp_path):
     assert len(refused) == 3 and all("this copy has no global solvers" in line for line in refused), result.stderr
 
 
+def comment_blocks(text: str) -> list:
+    """The runs of consecutive comment lines of a requirements or TOML text, each as a tuple of lines."""
+    blocks, block = [], []
+    for line in text.splitlines() + [""]:
+        if line.lstrip().startswith("#"):
+            block.append(line)
+        elif block:
+            blocks.append(tuple(block))
+            block = []
+    return blocks
+
+
+def test_starter_requirements_keep_only_whole_comment_blocks(starter):
+    """Every comment block of the starter's requirements files and pyproject.toml is one of the project's,
+    whole: none is the tail of a block whose first line (naming solver/newton) was cut. A requirements file
+    left with only `-r requirements.txt` (requirements-cholmod.txt) is not in the starter."""
+    written = [starter / "pyproject.toml", *starter.glob("requirements*.txt")]
+    assert {path.name for path in written} == {"pyproject.toml", "requirements.txt", "requirements-mesh.txt"}
+    for path in written:
+        ours = comment_blocks((REPO / path.name).read_text())
+        for block in comment_blocks(path.read_text()):
+            assert block in ours, f"{path.name}: a comment block the project's file does not have whole: {block}"
+
+
+def test_without_global_solvers_drops_the_comment_blocks_of_what_it_drops():
+    text = ("# kept: about numpy\nnumpy==1\n"
+            "# about the sparse solver of solver/newton/direct.py,\n# continued here\nscipy==1\n"
+            "# about qdldl\n# on two lines\nqdldl==0.1\n"
+            "# a closing note\n")
+    assert homework._without_global_solvers(text) == "# kept: about numpy\nnumpy==1\nscipy==1\n# a closing note\n"
+
+
 @pytest.mark.parametrize("make, match", [
     (lambda tmp: tmp / "absent", "does not exist"),
     (lambda tmp: (tmp / "file.txt").write_text("x") and tmp / "file.txt", "is not a folder"),
