@@ -299,6 +299,21 @@ def test_demo_in_the_starter_stops_with_one_line(starter):
     assert output[0].startswith("not yet implemented: force_hessian: vertex_force_hessian"), output
 
 
+def test_demo_help_in_the_starter_lists_only_its_commands(starter):
+    """The starter has no demo/figures.py: `python -m demo --help` does not offer `figures` (the project's
+    does), and `figures` run anyway is a one-line error, even with the project installed in editable mode."""
+    commands = {}
+    for folder in (starter, REPO):
+        result = run(["-m", "demo", "--help"], folder)
+        assert result.returncode == 0, result.stderr
+        commands[folder] = set(re.findall(r"^ {4}(\w+)", result.stdout, flags=re.M))
+    assert commands[REPO] - commands[starter] == {"figures"}, commands
+    assert {"list", "render", "homework"} <= commands[starter]
+    result = run(["-m", "demo", "figures", "--check"], starter)
+    assert result.returncode == 2 and result.stderr.splitlines() == [
+        "error: `figures` is not available: demo.figures is not in this checkout"], result.stderr
+
+
 def test_graded_tests_fail_on_the_starter_with_their_todo(starter, tmp_path):
     score = tmp_path / "score.json"
     result = run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], starter, VBD_GRADE_JSON=str(score))
