@@ -72,9 +72,16 @@ def build_parser():
     interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
     interactive.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="window size in pixels")
 
-    sub.add_parser("homework", help="homework tools (python -m demo homework --help)", add_help=False)
-    sub.add_parser("figures", help="lecture figures (python -m demo figures --help)", add_help=False)
+    for command, what in (("homework", "homework tools"), ("figures", "lecture figures")):
+        if available(command):     # a homework starter has no demo/figures.py: --help does not offer it
+            sub.add_parser(command, help=f"{what} (python -m demo {command} --help)", add_help=False)
     return parser
+
+
+def available(command):
+    """Whether the module of a delegated command is in this checkout, beside this file: inside a starter, an
+    editable install of the project elsewhere on the import path would offer the project's."""
+    return (Path(__file__).parent / f"{DELEGATED[command].rsplit('.', 1)[-1]}.py").is_file()
 
 
 def list_scenes():
@@ -229,13 +236,9 @@ def _delegate(command, rest):
     import importlib
 
     name = DELEGATED[command]
-    try:
-        module = importlib.import_module(name)
-    except ModuleNotFoundError as e:
-        if e.name != name:
-            raise
-        raise DemoError(f"`{command}` is not available: {name} is not in this checkout") from None
-    return module.main(rest) or 0
+    if not available(command):
+        raise DemoError(f"`{command}` is not available: {name} is not in this checkout")
+    return importlib.import_module(name).main(rest) or 0
 
 
 if __name__ == "__main__":

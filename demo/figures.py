@@ -578,6 +578,17 @@ def _shown(path: Path) -> str:
         return path.name
 
 
+def _figures_folder(out: Path) -> Path:
+    """`out`, checked to be a folder or a place for one: a file there or above it is a one-line error."""
+    from .errors import DemoError
+
+    existing = next(place for place in (out, *out.parents) if place.exists())
+    if not existing.is_dir():
+        raise DemoError(f"--out must be a folder, but {_shown(existing)} is a file; name a folder for the figures "
+                        f"(default: lecture_notes/figures)")
+    return out
+
+
 def main(argv=None):
     from . import cli
     from .errors import DemoError
@@ -603,7 +614,7 @@ def main(argv=None):
             print(name)
         print("excerpts")
         return 0
-    out, notes = args.out or FIGURES, args.notes or NOTES
+    out, notes = _figures_folder(args.out or FIGURES), args.notes or NOTES
     if not chapters(notes):
         raise DemoError(f"no lecture-note chapters (NN-*.md) in {_shown(notes)}; pass --notes with the "
                         f"lecture_notes folder")

@@ -91,6 +91,15 @@ class Task:
     depends: tuple = ()          # tasks whose code the graded tests of this one also run
     details: str = ""            # a paragraph for the student README
     notes: dict = field(default_factory=dict)   # function name -> extra comment lines in the starter
+    chapters: dict = field(default_factory=dict)   # function name -> its chapter, where that is not `chapter`
+
+    def chapter_of(self, function: str) -> str:
+        """The chapter that derives `function` (a qualified or plain name), which its TODO points at."""
+        return self.chapters.get(function.rsplit(".", 1)[-1], self.chapter)
+
+    def all_chapters(self) -> list:
+        """Every chapter the task's TODOs point at, in the notes' order."""
+        return sorted({self.chapter, *self.chapters.values()})
 
 
 TASKS = (
@@ -115,7 +124,7 @@ TASKS = (
         details="Write the body of the serial loop in `_greedy`: vertex `v = order[k]` gets the smallest "
                 "colour not used by any neighbour (CSR arrays `offsets`, `neighbours`); keep `n_colors` "
                 "up to date: `_greedy` returns it, `color_vertices` refuses a mesh that needs more than 64 "
-                "colours by it, and a graded test checks it (chapter 4, \"Greedy graph colouring\").",
+                "colours by it, and a graded test checks it (chapter 4, \"Greedy colouring\").",
         notes={"_greedy": ["v = order[k] is the vertex; its neighbours are neighbours[offsets[v]:offsets[v + 1]]; "
                            "colors[u] is -1 until u is coloured.",
                            "Keep n_colors = the number of colours used so far; the function returns it."]},
@@ -161,7 +170,10 @@ TASKS = (
     ),
     Task(
         id="analysis", title="Derivations checked numerically, and measurements of your solver", points=15,
-        chapter="lecture_notes/05-information-propagation.md",
+        chapter="lecture_notes/03-coordinate-descent.md",
+        chapters={"jacobi_against_coloring": "lecture_notes/04-parallelism.md",
+                  "iterations_needed": "lecture_notes/05-information-propagation.md",
+                  "rho_residuals": "lecture_notes/06-what-helps.md", "best_rho": "lecture_notes/06-what-helps.md"},
         functions=("exercises/analysis.py:dF_dx", "exercises/analysis.py:hessian_eigenvalues",
                    "exercises/analysis.py:iterations_needed", "exercises/analysis.py:rho_residuals",
                    "exercises/analysis.py:best_rho", "exercises/analysis.py:jacobi_against_coloring"),
@@ -258,7 +270,7 @@ def _error(message):
 def todo_message(task: Task, function: str) -> str:
     """The text of the NotImplementedError that replaces a region of `task` inside `function`."""
     short = function.rsplit(".", 1)[-1]
-    message = f"TODO: {task.id}: {short}: {task.what[short]}; see {task.chapter}"
+    message = f"TODO: {task.id}: {short}: {task.what[short]}; see {task.chapter_of(function)}"
     assert '"' not in message and "\\" not in message, message
     return message
 
@@ -345,7 +357,7 @@ def strip_regions(text: str, regions) -> str:
         short = region.function.rsplit(".", 1)[-1]
         comment = [f"TODO(task {region.task.id}, {region.task.points} points): {region.task.what[short]}.",
                    *region.task.notes.get(short, []),
-                   f"Replace the raise below with your code; see {region.task.chapter}."]
+                   f"Replace the raise below with your code; see {region.task.chapter_of(region.function)}."]
         for paragraph in comment:
             for line in textwrap.wrap(paragraph, width=max(40, 100 - len(indent)), break_on_hyphens=False):
                 out.append(f"{indent}# {line}\n")
@@ -408,7 +420,8 @@ def _student_readme(root: Path, regions) -> str:
         needs = ", ".join(f"`{d}`" for d in task.depends) or "-"
         rows.append(f"| {n} | `{task.id}` | {task.title} | {task.points} | {', '.join(places)} | {needs} |")
         sections.append(f"### {n}. {task.title} (`{task.id}`, {task.points} points)\n\n{task.details}\n\n"
-                        f"Where: {', '.join(places)}. Read: [{task.chapter}]({task.chapter}).\n")
+                        f"Where: {', '.join(places)}. Read: "
+                        f"{', '.join(f'[{chapter}]({chapter})' for chapter in task.all_chapters())}.\n")
     total = sum(task.points for task in TASKS)
     template = (root / README_TEMPLATE).read_text(encoding="utf-8")
     table = ("| # | task | what | points | where | graded with |\n|---|---|---|---|---|---|\n"
@@ -431,10 +444,30 @@ def _pytest_ini(text: str) -> str:
 
 
 def _without_global_solvers(text: str) -> str:
-    """A requirements or pyproject text without the lines naming the global solvers or their packages."""
+    """A requirements or pyproject text without the lines naming the global solvers or their packages. A
+    comment block (comment lines in a row) goes whole: when one of its lines names them, and with the line
+    right after it, which it describes, when that line goes."""
     dropped = (*GLOBAL_SOLVER_PACKAGES, "solver/newton", "solver.newton")
-    kept = [line for line in text.splitlines(keepends=True) if not any(word in line for word in dropped)]
+
+    def names(lines):
+        return any(word in line for line in lines for word in dropped)
+
+    kept, block = [], []
+    for line in text.splitlines(keepends=True):
+        if line.lstrip().startswith("#"):
+            block.append(line)
+            continue
+        if not names([line]):
+            kept += [] if names(block) else block
+            kept.append(line)
+        block = []
+    kept += [] if names(block) else block
     return "".join(kept).replace(', "benchmarks"]', "]")
+
+
+def _is_requirement(line: str) -> bool:
+    """Whether a requirements-file line asks for a package (not blank, a comment or an -r include)."""
+    return bool(line.strip()) and not line.lstrip().startswith(("#", "-r", "--requirement"))
 
 
 def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: bool = False):
@@ -466,8 +499,7 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(_pytest_ini((root / rel).read_text(encoding="utf-8")), encoding="utf-8")
             elif rel.name == "pyproject.toml" or (rel.name.startswith("requirements") and rel.suffix == ".txt"):
                 text = _without_global_solvers((root / rel).read_text(encoding="utf-8"))
-                if rel.suffix == ".txt" and not any(line.strip() and not line.lstrip().startswith("#")
-                                                    for line in text.splitlines()):
+                if rel.suffix == ".txt" and not any(_is_requirement(line) for line in text.splitlines()):
                     continue          # a requirements file of the global solvers only
                 target.write_text(text, encoding="utf-8")
             else:
@@ -584,23 +616,63 @@ def _task_files(task: Task) -> dict:
     return files
 
 
+# The top folders of the task files: a folder holding one of them is a submission, with or without the marker
+# (a zip or LMS download often loses hidden files).
+TASK_FOLDERS = tuple(sorted({Path(spec.split(":")[0]).parts[0] for task in TASKS for spec in task.functions}))
+# A class folder's subfolders that are never a student's: hidden ones (.git, ...) and the metadata folder
+# macOS puts into zip files.
+NOT_STUDENTS = re.compile(r"\..*|__MACOSX")
+
+
 def _is_starter(folder: Path) -> bool:
-    return (folder / STARTER_MARKER).is_file() and (folder / "solver").is_dir()
+    """Whether `folder` is a student's starter: it holds the marker or a folder of task files."""
+    return (folder / STARTER_MARKER).is_file() or any((folder / name).is_dir() for name in TASK_FOLDERS)
 
 
-def submissions(path: Path) -> dict:
-    """{name: folder} of the starters to grade: `path` itself, or the starters directly inside it."""
+def _task_folder_names() -> str:
+    return " or ".join(f"{name}/" for name in TASK_FOLDERS)
+
+
+def _not_a_starter(folder: Path) -> str:
+    """Why the folder `folder` of a class cannot be graded, in words that start with its name."""
+    name = f"{folder.name}/"
+    entries = sorted(folder.iterdir())
+    if not entries:
+        return f"{name} is empty"
+    nested = [entry for entry in entries if entry.is_dir() and _is_starter(entry)]
+    if nested:
+        return (f"{name} holds a starter one level deeper, in {name}{nested[0].name}/; move its contents up into "
+                f"{name} to grade it")
+    return f"{name} is not a homework starter (no {STARTER_MARKER}, {_task_folder_names()} in it)"
+
+
+def submissions(path: Path) -> tuple:
+    """({name: folder} of the starters to grade, {name: why not} of a class's folders that cannot be
+    graded): `path` itself when it is a starter, else every folder directly inside it (a class) but
+    hidden ones and __MACOSX/."""
     if not path.exists():
         raise _error(f"{path} does not exist; pass a student's starter folder or a folder of them")
     if not path.is_dir():
         raise _error(f"{path} is not a folder; pass a student's starter folder or a folder of them")
     if _is_starter(path):
-        return {path.resolve().name: path}
-    found = {child.name: child for child in sorted(path.iterdir()) if child.is_dir() and _is_starter(child)}
+        return {path.resolve().name: path}, {}
+    found, skipped = {}, {}
+    for child in sorted(path.iterdir(), key=lambda child: child.name):
+        if not child.is_dir() or NOT_STUDENTS.fullmatch(child.name):
+            continue
+        try:
+            if _is_starter(child):
+                found[child.name] = child
+            else:
+                skipped[child.name] = _not_a_starter(child)
+        except OSError as e:
+            skipped[child.name] = f"{child.name}/ cannot be read ({e.strerror or e})"
     if not found:
-        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER} and solver/) and holds none; "
-                     "pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
-    return found
+        why = f" ({next(iter(skipped.values()))}{f', and {len(skipped) - 1} more' if len(skipped) > 1 else ''})" \
+            if skipped else ""
+        raise _error(f"{path} is not a homework starter (no {STARTER_MARKER}, {_task_folder_names()}) and holds none"
+                     f"{why}; pass the folder `python -m demo homework --out` wrote, or a folder of such folders")
+    return found, skipped
 
 
 class Grader:
@@ -721,27 +793,62 @@ def _points(value: float) -> str:
     return f"{value:.0f}" if abs(value - round(value)) < 1e-9 else f"{value:.1f}"
 
 
-def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1) -> dict:
-    """Grade a starter folder or a folder of them, `jobs` graded runs at once; print each task's points and
-    `total: NN/100` last. Returns {name: {"tasks": {task: TaskGrade fields}, "earned", "total"}}; `json_file`
-    gets the same."""
-    folders = submissions(Path(submission))
+def _check_gradebook(json_file: Path, overwrite: bool):
+    """Refuse a --json path that cannot take the gradebook, before any grading: a folder, one whose folder
+    does not exist, or an existing file unless `overwrite`."""
+    parent = json_file.parent
+    if json_file.is_dir():
+        raise _error(f"--json {json_file} is a folder; name a file, for example --json {json_file / 'gradebook.json'}")
+    if not parent.is_dir():
+        raise _error(f"--json {json_file}: {parent} {'is not a folder' if parent.exists() else 'does not exist'}; "
+                     "name a file in an existing folder")
+    if json_file.exists() and not overwrite:
+        raise _error(f"--json {json_file} already exists; pass --overwrite to replace it or name another file")
+
+
+def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1,
+          overwrite: bool = False) -> dict:
+    """Grade a starter folder or a class (a folder of them), `jobs` graded runs at once; print each task's
+    points and `total: NN/100` last. Every folder of a class is graded or reported: one that is not a
+    starter (see `submissions`) gets one line saying why and 0 points. Returns {name: {"tasks": {task:
+    TaskGrade fields}, "earned", "total"}, plus "not_graded": why for a folder that was not graded};
+    `json_file` gets the same (an existing one only with `overwrite`)."""
+    folders, skipped = submissions(Path(submission))
+    if json_file is not None:
+        _check_gradebook(Path(json_file), overwrite)
+    selected = [task for task in TASKS if not tasks or task.id in tasks]
     book = {}
 
+    def entry(grades):
+        return {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
+                "earned": sum(g.earned for g in grades), "total": sum(g.points for g in grades)}
+
     def report(name, grades):
-        if len(folders) > 1:
+        if len(folders) + len(skipped) > 1:
             print(f"== {name}")
         for g in grades:
             why = f"   {g.reason}" if g.earned < g.points and g.reason else ""
             print(f"{g.task:15s} {_points(g.earned):>5s}/{g.points:<3d} {g.passed}/{g.total} tests passed{why}")
-        earned = sum(g.earned for g in grades)
-        total = sum(g.points for g in grades)
-        print(f"total: {_points(earned)}/{total}", flush=True)
-        book[name] = {"tasks": {g.task: {k: v for k, v in g.__dict__.items() if k != "task"} for g in grades},
-                      "earned": earned, "total": total}
+        book[name] = entry(grades)
+        print(f"total: {_points(book[name]['earned'])}/{book[name]['total']}", flush=True)
+
+    def not_graded(name):
+        why = skipped[name]
+        book[name] = {**entry([TaskGrade(task.id, 0.0, task.points, 0, 0, why) for task in selected]),
+                      "not_graded": why}
+        print(f"== {name}: 0/{book[name]['total']}, not graded: {why}", flush=True)
+
+    waiting = sorted(skipped)
+
+    def done(name, grades):        # the class in name order, the folders not graded among the others
+        while waiting and waiting[0] < name:
+            not_graded(waiting.pop(0))
+        report(name, grades)
 
     with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
-        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=report)
+        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=done)
+    while waiting:
+        not_graded(waiting.pop(0))
     if json_file is not None:
         try:
             Path(json_file).write_text(json.dumps(book, indent=2) + "\n", encoding="utf-8")
@@ -757,10 +864,16 @@ def grade_main(argv) -> int:
         prog="python -m demo homework grade", formatter_class=HelpFormatter,
         description="Grade homework for marks: copy only the task functions of each submission into a fresh "
                     "starter built from this project (one per task, the other tasks' solutions in place) and "
-                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100.")
+                    "run the pristine graded tests there. Prints the points per task and, last, total: NN/100. "
+                    "A class folder: every folder in it is a submission (hidden folders and __MACOSX/ aside). "
+                    f"One holding {_task_folder_names()} is graded, with or without its {STARTER_MARKER} (a zip "
+                    "or LMS download may drop that hidden file); any other (empty, or the starter one level "
+                    "deeper) gets one line saying why and 0 points in the gradebook, and the command exits "
+                    "with status 1 once the rest is graded.")
     parser.add_argument("submission", type=Path, help="a student's starter folder, or a folder of them (a class)")
     parser.add_argument("--json", type=Path, default=None, metavar="FILE",
                         help="also write the gradebook as JSON (default: none)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --json FILE")
     parser.add_argument("--task", action="append", choices=list(TASKS_BY_ID), default=None,
                         help="grade only this task (repeatable; default: all tasks)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="N",
@@ -769,7 +882,12 @@ def grade_main(argv) -> int:
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be 1 or more, got {args.jobs}")
-    grade(args.submission, args.json, args.task, jobs=args.jobs)
+    book = grade(args.submission, args.json, args.task, jobs=args.jobs, overwrite=args.overwrite)
+    missed = [name for name, entry in book.items() if "not_graded" in entry]
+    if missed:
+        print(f"not graded: {', '.join(missed)} ({len(missed)} of {len(book)} folders, 0 points each; "
+              "see their lines above)", file=sys.stderr)
+        return 1
     return 0
 
 

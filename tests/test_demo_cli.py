@@ -197,6 +197,18 @@ def test_figures_bad_arguments_give_one_line_errors(capsys, argv, match):
     one_line_error(capsys, argv, match)
 
 
+@pytest.mark.parametrize("mode", [["--only", "excerpts"], ["--check"]])
+@pytest.mark.parametrize("under", ["", "figures"])
+def test_figures_out_must_be_a_folder(tmp_path, capsys, mode, under):
+    """An existing file as --out (or above it) is a one-line error: it was a FileExistsError traceback, or
+    with --check a misleading 'no manifest.json'. The file is untouched."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    one_line_error(capsys, ["figures", *mode, "--out", str(notes / under)],
+                   "--out must be a folder, but notes.txt is a file")
+    assert notes.read_text() == "mine"
+
+
 def test_ply_export_writes_32_bit_faces_without_warnings(tmp_path, capfd):
     import meshio
     import solver

@@ -74,6 +74,39 @@ def test_regions_become_todo_raises(starter):
             assert not re.match(r"\s*# (BEGIN|END) SOLUTION", lines[number - 1]), f"marker left in {name}:{number}"
 
 
+# What a chapter must say where a task function's name is not in it: the topic the function is cited for.
+TOPICS = {"dF_dx": "affine", "hessian_eigenvalues": "positive definite", "iterations_needed": "N_c",
+          "rho_residuals": "spectral radius", "best_rho": "spectral radius", "jacobi_against_coloring": "under-relax"}
+
+
+def test_every_chapter_a_todo_or_task_names_covers_it(starter):
+    """Each TODO (its raise and its comment in the starter) names one chapter, which holds the function's
+    name or its topic; every chapter and quoted section a task's README text names exists."""
+    notes = REPO / "lecture_notes"
+    for region in homework.all_regions(REPO):
+        short = region.function.rsplit(".", 1)[-1]
+        chapter = region.task.chapter_of(region.function)
+        message = homework.todo_message(region.task, region.function)
+        cited = re.findall(r"lecture_notes/\S+?\.md", message)
+        assert cited == [chapter], (short, cited)
+        text = (REPO / chapter).read_text()
+        covered = re.search(rf"\b{re.escape(short)}\b", text) is not None or TOPICS[short] in text
+        assert covered, f"{chapter} has neither {short} nor its topic {TOPICS.get(short)!r}"
+        lines = (starter / region.path).read_text().splitlines()
+        at = next(n for n, line in enumerate(lines) if message in line)
+        first = at
+        while lines[first - 1].lstrip().startswith("#"):
+            first -= 1
+        comment = " ".join(line.strip().lstrip("# ") for line in lines[first:at])
+        assert f"see {chapter}." in comment, (short, comment)
+    for task in homework.TASKS:
+        for number, section in re.findall(r'chapter (\d+)(?:, "([^"]+)")?', task.details):
+            (path,) = notes.glob(f"{int(number):02d}-*.md")
+            headed = not section or re.search(rf"^#+ {re.escape(section)}$", path.read_text(), flags=re.M)
+            assert headed, f"task {task.id} quotes a section {section!r} that {path.name} does not have"
+        assert all((REPO / chapter).is_file() for chapter in task.all_chapters()), task.id
+
+
 def test_no_solution_line_survives(starter):
     """Every line of a solution region appears in the starter no more often than it does outside the
     regions in the solution (lines like `i = self.color_order[k]` also occur elsewhere)."""
@@ -267,6 +300,21 @@ def test_demo_in_the_starter_stops_with_one_line(starter):
     assert output[0].startswith("not yet implemented: force_hessian: vertex_force_hessian"), output
 
 
+def test_demo_help_in_the_starter_lists_only_its_commands(starter):
+    """The starter has no demo/figures.py: `python -m demo --help` does not offer `figures` (the project's
+    does), and `figures` run anyway is a one-line error, even with the project installed in editable mode."""
+    commands = {}
+    for folder in (starter, REPO):
+        result = run(["-m", "demo", "--help"], folder)
+        assert result.returncode == 0, result.stderr
+        commands[folder] = set(re.findall(r"^ {4}(\w+)", result.stdout, flags=re.M))
+    assert commands[REPO] - commands[starter] == {"figures"}, commands
+    assert {"list", "render", "homework"} <= commands[starter]
+    result = run(["-m", "demo", "figures", "--check"], starter)
+    assert result.returncode == 2 and result.stderr.splitlines() == [
+        "error: `figures` is not available: demo.figures is not in this checkout"], result.stderr
+
+
 def test_graded_tests_fail_on_the_starter_with_their_todo(starter, tmp_path):
     score = tmp_path / "score.json"
     result = run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], starter, VBD_GRADE_JSON=str(score))
@@ -423,15 +471,125 @@ def test_starter_has_no_global_solver(starter, tmp_path):
     assert len(refused) == 3 and all("this copy has no global solvers" in line for line in refused), result.stderr
 
 
+def comment_blocks(text: str) -> list:
+    """The runs of consecutive comment lines of a requirements or TOML text, each as a tuple of lines."""
+    blocks, block = [], []
+    for line in text.splitlines() + [""]:
+        if line.lstrip().startswith("#"):
+            block.append(line)
+        elif block:
+            blocks.append(tuple(block))
+            block = []
+    return blocks
+
+
+def test_starter_requirements_keep_only_whole_comment_blocks(starter):
+    """Every comment block of the starter's requirements files and pyproject.toml is one of the project's,
+    whole: none is the tail of a block whose first line (naming solver/newton) was cut. A requirements file
+    left with only `-r requirements.txt` (requirements-cholmod.txt) is not in the starter."""
+    written = [starter / "pyproject.toml", *starter.glob("requirements*.txt")]
+    assert {path.name for path in written} == {"pyproject.toml", "requirements.txt", "requirements-mesh.txt"}
+    for path in written:
+        ours = comment_blocks((REPO / path.name).read_text())
+        for block in comment_blocks(path.read_text()):
+            assert block in ours, f"{path.name}: a comment block the project's file does not have whole: {block}"
+
+
+def test_without_global_solvers_drops_the_comment_blocks_of_what_it_drops():
+    text = ("# kept: about numpy\nnumpy==1\n"
+            "# about the sparse solver of solver/newton/direct.py,\n# continued here\nscipy==1\n"
+            "# about qdldl\n# on two lines\nqdldl==0.1\n"
+            "# a closing note\n")
+    assert homework._without_global_solvers(text) == "# kept: about numpy\nnumpy==1\nscipy==1\n# a closing note\n"
+
+
 @pytest.mark.parametrize("make, match", [
     (lambda tmp: tmp / "absent", "does not exist"),
     (lambda tmp: (tmp / "file.txt").write_text("x") and tmp / "file.txt", "is not a folder"),
     (lambda tmp: (tmp / "empty").mkdir() or tmp / "empty", "is not a homework starter"),
+    (lambda tmp: fake_starter(tmp / "class" / "dave" / "hw").parent.parent, "dave/ holds a starter one level deeper"),
 ])
 def test_grade_refuses_what_is_not_a_submission(tmp_path, capsys, make, match):
     assert main(["homework", "grade", str(make(tmp_path))]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and match in err, err
+
+
+def fake_starter(folder: Path, marker=True) -> Path:
+    """What `submissions` looks at in a starter: solver/ and exercises/, and the marker file."""
+    for name in ("solver", "exercises"):
+        (folder / name).mkdir(parents=True)
+    if marker:
+        (folder / homework.STARTER_MARKER).write_text("{}")
+    return folder
+
+
+class FullMarksGrader:
+    """Stands in for `homework.Grader`: every submission it is given gets full points."""
+
+    def __init__(self, scratch, root, jobs):
+        pass
+
+    def grade_all(self, submissions, tasks=None, done=None):
+        for name in submissions:
+            done(name, [homework.TaskGrade(t.id, float(t.points), t.points, 1, 1, "")
+                        for t in homework.TASKS if not tasks or t.id in tasks])
+
+
+def test_every_folder_of_a_class_is_graded_or_reported(tmp_path, capsys, monkeypatch):
+    """A starter that lost its hidden marker in a download is graded; one nested a level deeper and an
+    empty folder get a line each and 0 points with the reason in the gradebook, and the exit status says
+    so. Hidden folders, __MACOSX/ and files are not students."""
+    klass = tmp_path / "class"
+    fake_starter(klass / "ann")
+    fake_starter(klass / "carl", marker=False)
+    fake_starter(klass / "dave" / "hw")
+    (klass / "erin").mkdir()
+    for other in (".git", "__MACOSX"):
+        (klass / other).mkdir()
+    (klass / "marks.csv").write_text("name,points\n")
+    monkeypatch.setattr(homework, "Grader", FullMarksGrader)
+    book = tmp_path / "book.json"
+    assert main(["homework", "grade", str(klass), "--task", "coloring", "--json", str(book)]) == 1
+    out, err = capsys.readouterr()
+    assert out.splitlines() == [
+        "== ann", "coloring           15/15  1/1 tests passed", "total: 15/15",
+        "== carl", "coloring           15/15  1/1 tests passed", "total: 15/15",
+        "== dave: 0/15, not graded: dave/ holds a starter one level deeper, in dave/hw/; move its contents up "
+        "into dave/ to grade it",
+        "== erin: 0/15, not graded: erin/ is empty"], out
+    assert err == "not graded: dave, erin (2 of 4 folders, 0 points each; see their lines above)\n", err
+    gradebook = json.loads(book.read_text())
+    assert list(gradebook) == ["ann", "carl", "dave", "erin"]
+    assert [gradebook[name]["earned"] for name in gradebook] == [15, 15, 0, 0]
+    assert gradebook["erin"]["not_graded"] == gradebook["erin"]["tasks"]["coloring"]["reason"] == "erin/ is empty"
+    assert "not_graded" not in gradebook["carl"]
+
+
+@pytest.mark.parametrize("where, match", [
+    ("notes.txt", "notes.txt already exists; pass --overwrite to replace it"),
+    (".", "is a folder; name a file"),
+    ("absent/book.json", "absent does not exist"),
+    ("notes.txt/book.json", "notes.txt is not a folder"),
+])
+def test_grade_checks_the_gradebook_path_before_grading(tmp_path, capsys, monkeypatch, where, match):
+    """--json refuses an existing file (without --overwrite), a folder and a path in no folder, in one line
+    and before any grading; the user's file is untouched."""
+    (tmp_path / "notes.txt").write_text("precious")
+    graded = []
+    monkeypatch.setattr(homework, "Grader", lambda *args, **kw: graded.append(args) or FullMarksGrader(*args, **kw))
+    assert main(["homework", "grade", str(fake_starter(tmp_path / "ann")), "--json", str(tmp_path / where)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and match in err, err
+    assert graded == [] and (tmp_path / "notes.txt").read_text() == "precious"
+
+
+def test_grade_replaces_a_gradebook_with_overwrite(tmp_path, capsys, monkeypatch):
+    book = tmp_path / "book.json"
+    book.write_text("last term's")
+    monkeypatch.setattr(homework, "Grader", FullMarksGrader)
+    assert main(["homework", "grade", str(fake_starter(tmp_path / "ann")), "--json", str(book), "--overwrite"]) == 0
+    assert json.loads(book.read_text())["ann"]["earned"] == 100
 
 
 @pytest.mark.parametrize("jobs", ["0", "-2"])
