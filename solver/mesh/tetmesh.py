@@ -137,21 +137,11 @@ def _validated(vertices, tets, original_index):
     ordered tet is reordered on its own; only a mesh that still overlaps itself is rejected.
     """
     vertices = np.asarray(vertices)
-    tets = np.asarray(tets)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
         raise MeshError(f"vertices must be an (N, 3) array, got shape {vertices.shape}; pass 3D points")
-    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
-        raise MeshError(f"the mesh has no tetrahedra (tets shape {tets.shape}); pass a volume mesh, "
-                        "or a closed surface to tetrahedralise with load_mesh")
-    if not np.issubdtype(tets.dtype, np.integer):
-        raise MeshError(f"tet indices must be integers, got {tets.dtype}; cast them with astype(int)")
     vertices = np.array(vertices, dtype=np.float64)
-    tets = np.array(tets, dtype=np.int64)
     n = vertices.shape[0]
-    if tets.min() < 0 or tets.max() >= n:
-        t = np.flatnonzero((tets < 0).any(axis=1) | (tets >= n).any(axis=1))[0]
-        raise MeshError(f"tet {t} has vertex index out of range {tets[t].tolist()} with {n} vertices; "
-                        "indices must be 0-based and below the vertex count")
+    tets = tet_indices(tets, n)
     original = np.arange(n) if original_index is None else np.asarray(original_index, dtype=np.int64)
     used = np.zeros(n, dtype=bool)
     used[tets.ravel()] = True
@@ -185,6 +175,26 @@ def _validated(vertices, tets, original_index):
         raise MeshError(f"{folded.sum()} tets overlap their neighbours (first: tet {t}): the mesh folds over "
                         "itself, so reordering tets cannot fix it; remesh it, e.g. from its boundary surface")
     return vertices, np.ascontiguousarray(tets, dtype=np.int32), original
+
+
+def tet_indices(tets, n_vertices) -> np.ndarray:
+    """`tets` as an (M, 4) int64 copy, checked against `n_vertices`; a one-line `MeshError` for a vertex
+    count that is not an integer >= 1, a shape other than (M, 4) with M >= 1, non-integer entries, or an
+    index outside 0 .. n_vertices - 1."""
+    if isinstance(n_vertices, bool) or not isinstance(n_vertices, numbers.Integral) or n_vertices < 1:
+        raise MeshError(f"the vertex count must be an integer >= 1, got {n_vertices!r}; pass mesh.n_vertices")
+    tets = np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+        raise MeshError(f"the mesh has no tetrahedra (tets shape {tets.shape}, not (M, 4)); pass a volume mesh, "
+                        "or a closed surface to tetrahedralise with load_mesh")
+    if not np.issubdtype(tets.dtype, np.integer):
+        raise MeshError(f"tet indices must be integers, got {tets.dtype}; cast them with astype(int)")
+    tets = np.array(tets, dtype=np.int64)
+    if tets.min() < 0 or tets.max() >= n_vertices:
+        t = np.flatnonzero((tets < 0).any(axis=1) | (tets >= n_vertices).any(axis=1))[0]
+        raise MeshError(f"tet {t} has vertex index out of range {tets[t].tolist()} with {n_vertices} vertices; "
+                        "indices must be 0-based and below the vertex count")
+    return tets
 
 
 def _folded_tets(tets: np.ndarray) -> np.ndarray:
