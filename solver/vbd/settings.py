@@ -9,7 +9,9 @@ What each setting means for each method (`Method`; "auto" behaves as the method 
     setting                 vbd                         multilevel                   newton, pcg
     iterations              VBD iterations per step     budget of fine sweeps:       Newton iterations per
                                                         iterations // 4 cycles of    step (the cap)
-                                                        2 + coarse + 2 (the cap)
+                                                        2 + coarse + 2 (the cap,
+                                                        rounded down: 4 to 7 run
+                                                        one cycle); below 4 refused
     tolerance               stop once max_i |f_i| <= tolerance x max(max_i |f_i| at the initial guess,
                             max_i m_i |g|) (or round-off): checked every check_every iterations (vbd),
                             after every cycle (multilevel), after every Newton iteration (newton, pcg);
@@ -34,7 +36,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..errors import ConfigError, enum_value
-from ..method import Method
+from ..method import MULTILEVEL_CYCLE_SWEEPS, Method
 from ..physics.ground import Ground
 from .implicit_euler import InitialGuess
 
@@ -163,3 +165,7 @@ def check_method(settings: Settings, method: Method) -> None:
     if settings.keep_orientation:
         raise ConfigError(f"keep_orientation limits VBD's vertex steps, and {use} takes global steps; "
                           "set keep_orientation=False, or use method='vbd'")
+    if method is Method.MULTILEVEL and settings.iterations < MULTILEVEL_CYCLE_SWEEPS:
+        raise ConfigError(f"{use} runs whole cycles of {MULTILEVEL_CYCLE_SWEEPS} fine sweeps (2 + coarse + 2), "
+                          f"so it cannot stop after iterations={settings.iterations}; set iterations >= "
+                          f"{MULTILEVEL_CYCLE_SWEEPS}, or use method='vbd'")
