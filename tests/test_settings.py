@@ -146,6 +146,19 @@ def test_enum_settings_accept_their_names_and_list_the_choices():
     assert sim.initial_guess is solver.InitialGuess.PREVIOUS
 
 
+@pytest.mark.parametrize("dt, method", [(1e300, "newton"), (1e4, "vbd"), (1e-300, "multilevel"), (1e-10, "vbd")])
+def test_a_time_step_outside_the_physical_range_is_refused_in_one_line(dt, method):
+    low, high = solver.vbd.settings.DT_RANGE
+    with pytest.raises(solver.ConfigError, match=f"dt must be between {low:g} and {high:g} seconds") as err:
+        _simulation(method, dict(dt=dt))
+    assert "\n" not in str(err.value)
+    sim = _simulation(method, dict(dt=high))
+    sim.dt = low
+    with pytest.raises(solver.ConfigError, match="dt must be between"):
+        sim.dt = dt
+    assert sim.dt == low
+
+
 def test_live_assignment_goes_through_settings():
     sim = _simulation("vbd", dict(iterations=3))
     sim.settings = dataclasses.replace(sim.settings, dt=0.01, iterations=7)
