@@ -1,7 +1,8 @@
 """The live settings of a `Simulation`, validated in one place, and which method honours which.
 
-`Settings` is frozen and keyword-only, like `Material` and `Ground`: every value is checked (and
-names of enums turned into members) when one is made, so `sim.dt = 0.01` is
+`Settings` is frozen and checks every value when one is made (turning names of enums into members),
+like `Material` and `Ground`; unlike them it is keyword-only (`Settings(dt=0.01)`: its fields have no
+natural order, as Material(E, nu, rho) has). So `sim.dt = 0.01` is
 `sim.settings = dataclasses.replace(sim.settings, dt=0.01)` and a bad value never reaches a kernel.
 
 What each setting means for each method (`Method`; "auto" behaves as the method it chose):
