@@ -32,9 +32,13 @@ def wave_cells(mesh, material, dt: float) -> float:
 AUTO_VBD_BELOW = 6.0   # N_c under which plain VBD reaches 1e-2 first (benchmarks/results/multilevel; chapter 7)
 
 
+MULTILEVEL_CYCLE_SWEEPS = 4   # fine sweeps of one two-level cycle: 2 before the coarse correction, 2 after
+
+
 def multilevel_cycles(iterations: int) -> int:
-    """Two-level cycles per step for a budget of `iterations` fine sweeps: each cycle is 2 + 2 sweeps."""
-    return max(1, iterations // 4)
+    """Two-level cycles per step for a budget of `iterations` fine sweeps: whole cycles of 2 + 2 sweeps, the
+    budget rounded down (`check_method` refuses a budget below one cycle)."""
+    return iterations // MULTILEVEL_CYCLE_SWEEPS
 
 
 def as_method(value) -> Method:

@@ -20,6 +20,37 @@ def test_coloring_is_valid_and_deterministic(order):
     assert 4 <= a.n_colors <= 16
 
 
+def test_order_is_taken_by_name_and_a_bad_one_lists_the_choices():
+    mesh = solver.box_mesh(size=(1, .1, .1), cells=(4, 2, 2))
+    natural = solver.color_vertices(mesh.tets, mesh.n_vertices, solver.VertexOrder.NATURAL)
+    largest = solver.color_vertices(mesh.tets, mesh.n_vertices, solver.VertexOrder.LARGEST_FIRST)
+    assert not np.array_equal(natural.colors, largest.colors)     # the two orders differ on this mesh
+    np.testing.assert_array_equal(solver.color_vertices(mesh.tets, mesh.n_vertices, "natural").colors,
+                                  natural.colors)
+    np.testing.assert_array_equal(solver.color_vertices(mesh.tets, mesh.n_vertices, "largest_first").colors,
+                                  largest.colors)
+    keyed = solver.color_vertices(mesh.tets, mesh.n_vertices, "natural", key=mesh.topology_key())
+    np.testing.assert_array_equal(keyed.colors, natural.colors)
+    with pytest.raises(solver.ConfigError, match="'natural', 'largest_first'") as err:
+        solver.color_vertices(mesh.tets, mesh.n_vertices, "bogus")
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("tets, n_vertices, match", [
+    ([[0, 1, 2, 10 ** 7]], 4, "out of range"),
+    ([[0, 1, 2, -5]], 4, "out of range"),
+    ([[0, 1, 2]], 4, r"not \(M, 4\)"),
+    (np.zeros((0, 4), int), 4, "no tetrahedra"),
+    ([[0.0, 1.0, 2.0, 3.0]], 4, "must be integers"),
+    ([[0, 1, 2, 3]], 4.0, "vertex count must be an integer"),
+    ([[0, 1, 2, 3]], 0, "vertex count must be an integer"),
+])
+def test_bad_tets_or_vertex_count_are_one_line_mesh_errors(tets, n_vertices, match):
+    with pytest.raises(solver.MeshError, match=match) as err:
+        solver.color_vertices(np.asarray(tets), n_vertices)
+    assert "\n" not in str(err.value)
+
+
 def test_invalid_colorings_are_detected():
     mesh = solver.box_mesh(cells=(3, 1, 1))
     colors = solver.color_vertices(mesh.tets, mesh.n_vertices).colors.copy()

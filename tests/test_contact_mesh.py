@@ -31,6 +31,14 @@ def test_a_single_mesh_is_refused_with_the_fix():
         solver.merge_meshes(solver.box_mesh(size=(1, 1, 1), cells=(1, 1, 1)))
 
 
+def test_meshes_passed_one_by_one_are_refused_with_the_fix():
+    a = solver.box_mesh(size=(1, 1, 1), cells=(1, 1, 1))
+    b = solver.TetMesh(a.vertices + 3.0, a.tets)
+    with pytest.raises(solver.MeshError, match=r"got 2 arguments; pass a list: merge_meshes\(\[a, b\]\)") as err:
+        solver.merge_meshes(a, b)
+    assert "\n" not in str(err.value)
+
+
 def test_bodies_are_vertex_components_numbered_by_their_smallest_vertex():
     cube = solver.box_mesh(size=(1, 1, 1), cells=(1, 1, 1))
     # three cubes; the third's vertices are listed first, so it is body 0

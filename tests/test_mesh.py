@@ -1,4 +1,6 @@
 """Meshes: generators, every supported file format, boundary extraction, and every kind of bad input."""
+import os
+
 import meshio
 import numpy as np
 import pytest
@@ -212,8 +214,46 @@ def test_a_cell_naming_a_missing_point_is_a_mesh_error(tmp_path):
 @pytest.mark.parametrize("call", [lambda mesh: solver.load_mesh(123), lambda mesh: solver.save_mesh(mesh, 123)],
                          ids=["load_mesh", "save_mesh"])
 def test_a_path_that_is_not_a_path_is_a_config_error(tmp_path, call):
-    with pytest.raises(solver.ConfigError, match="path must be a str or pathlib.Path, got int 123"):
+    with pytest.raises(solver.ConfigError, match="path must be a str, bytes or pathlib.Path, got int 123"):
         call(solver.box_mesh(cells=(1, 1, 1)))
+
+
+def test_a_bytes_path_is_a_path(tmp_path):
+    mesh = solver.box_mesh(cells=(2, 1, 1))
+    path = os.fsencode(tmp_path / "bar.vtk")
+    solver.save_mesh(mesh, path)
+    np.testing.assert_array_equal(solver.load_mesh(path).tets, mesh.tets)
+
+
+def test_a_closed_surface_with_a_nan_vertex_names_the_nan(tmp_path):
+    lines = trimesh.exchange.obj.export_obj(trimesh.creation.box()).splitlines()
+    third = [k for k, line in enumerate(lines) if line.startswith("v ")][2]
+    lines[third] = "v nan 0.5 0.5"
+    path = tmp_path / "nan.obj"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(solver.MeshError, match=r"nan.obj: 1 vertices used by triangles have NaN or infinite "
+                                               r"coordinates \(first: vertex 2 counting from 0, at "
+                                               r"\[nan, 0.5, 0.5\]\)"):
+        solver.load_mesh(path)
+
+
+@pytest.mark.parametrize("binary", [True, False], ids=["binary", "ascii"])
+@pytest.mark.parametrize("damage", ["cut in POINTS", "POINTS count too large"])
+@pytest.mark.filterwarnings("ignore:string or file could not be read:DeprecationWarning")   # numpy in meshio's reader
+def test_a_truncated_vtk_file_is_called_damaged(tmp_path, binary, damage):
+    mesh = solver.box_mesh(cells=(2, 1, 1))
+    path = tmp_path / "bar.vtk"
+    meshio.write(path, meshio.Mesh(mesh.vertices, [("tetra", mesh.tets)]), binary=binary)
+    data = path.read_bytes()
+    if damage == "cut in POINTS":
+        data = data[:data.index(b"POINTS") + 60]
+    else:
+        data = data.replace(b"POINTS %d" % mesh.n_vertices, b"POINTS %d" % (mesh.n_vertices + 50))
+    path.write_bytes(data)
+    with pytest.raises(solver.MeshError, match=r"bar.vtk: cannot read this file, it is damaged, truncated .*"
+                                               r"\(meshio: .+\); export it again") as err:
+        solver.load_mesh(path)
+    assert "\n" not in str(err.value)
 
 
 def _closed(tmp_path):

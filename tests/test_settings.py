@@ -41,6 +41,7 @@ CASES = {
     "dt": (dict(iterations=4), dict(dt=1 / 30), set(), None),
     "gravity": (dict(iterations=4), dict(gravity=(0.0, -9.81, 0.0)), set(), None),
     "iterations": (dict(iterations=1), dict(iterations=20), set(), None),
+    "iterations below a cycle": (dict(iterations=4), dict(iterations=2), {solver.Method.MULTILEVEL}, None),
     "tolerance": (dict(iterations=40), dict(tolerance=0.3), set(), None),
     "check_every": (dict(iterations=40, tolerance=0.3), dict(check_every=7), GLOBAL, None),
     "initial_guess": (dict(iterations=1, initial_guess="inertial"), dict(initial_guess="previous"), set(), None),
@@ -57,6 +58,8 @@ CASES = {
     "material": (dict(iterations=4), dict(material=solver.Material(3e5, 0.3, 1000.0)), set(), None),
 }
 METHODS = ["vbd", "newton", "pcg", "multilevel", "auto"]
+CYCLE = solver.method.MULTILEVEL_CYCLE_SWEEPS
+TWO_LEVEL = {"multilevel", "auto"}    # "auto" chooses two-level VBD for MATERIAL
 
 
 def test_the_table_covers_every_setting():
@@ -72,9 +75,7 @@ def _simulation(method, kwargs):
 def _step(sim, set_up):
     if set_up is not None:
         set_up(sim)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")          # Newton capped at a few iterations: "did not converge"
-        sim.step()
+    sim.step()
     return sim.positions, len(sim.history)
 
 
@@ -82,6 +83,8 @@ def _step(sim, set_up):
 @pytest.mark.parametrize("setting", list(CASES))
 def test_every_method_honours_or_refuses_every_setting(setting, method):
     common, change, refused_by, set_up = CASES[setting]
+    if method in TWO_LEVEL:         # whole cycles of CYCLE sweeps: a row's smaller budget is one cycle
+        common = dict(common, iterations=max(common["iterations"], CYCLE))
     sim = _simulation(method, common)
     if sim.method in refused_by:
         name, value = next(iter(change.items()))
@@ -111,9 +114,17 @@ def test_every_method_honours_or_refuses_every_setting(setting, method):
 @pytest.mark.parametrize("method", ["newton", "pcg"])
 def test_newton_iterations_and_tolerance_are_the_cap_and_the_relative_stopping_test(method):
     capped = _simulation(method, dict(iterations=1))
-    with pytest.warns(UserWarning, match="did not converge"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")           # the cap is the user's budget: reaching it is no warning
         capped.step()
     assert capped.last_iterations == 1
+    problem = capped.step_problem()             # a direct call's cap is a safety limit: still warned about
+    with pytest.warns(UserWarning, match="did not converge"):
+        if method == "newton":
+            solver.fast_newton_solve(problem, problem.y_with_constraints(), max_iterations=1)
+        else:
+            solver.newton_pcg(problem.tets, problem.free).solve(problem, problem.y_with_constraints(),
+                                                                 max_iterations=1)
     loose = _simulation(method, dict(tolerance=0.5, record_history=True))
     loose.step()
     history = loose.history
@@ -139,6 +150,19 @@ def test_enum_settings_accept_their_names_and_list_the_choices():
     with pytest.raises(solver.ConfigError, match="'previous', 'inertia', 'inertial', 'adaptive'"):
         sim.initial_guess = "y"
     assert sim.initial_guess is solver.InitialGuess.PREVIOUS
+
+
+@pytest.mark.parametrize("dt, method", [(1e300, "newton"), (1e4, "vbd"), (1e-300, "multilevel"), (1e-10, "vbd")])
+def test_a_time_step_outside_the_physical_range_is_refused_in_one_line(dt, method):
+    low, high = solver.vbd.settings.DT_RANGE
+    with pytest.raises(solver.ConfigError, match=f"dt must be between {low:g} and {high:g} seconds") as err:
+        _simulation(method, dict(dt=dt))
+    assert "\n" not in str(err.value)
+    sim = _simulation(method, dict(dt=high))
+    sim.dt = low
+    with pytest.raises(solver.ConfigError, match="dt must be between"):
+        sim.dt = dt
+    assert sim.dt == low
 
 
 def test_live_assignment_goes_through_settings():

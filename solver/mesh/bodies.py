@@ -6,9 +6,13 @@ from ..errors import MeshError
 from .tetmesh import TetMesh
 
 
-def merge_meshes(meshes) -> TetMesh:
+def merge_meshes(meshes, *more) -> TetMesh:
     """One `TetMesh` holding every mesh of the list: the vertices of each in order, its tets renumbered
-    by the vertices before it. The bodies stay where they are; place them apart first."""
+    by the vertices before it. The bodies stay where they are; place them apart first. (`more` only
+    catches meshes passed one by one, merge_meshes(a, b), to say how to pass them.)"""
+    if more:
+        raise MeshError(f"merge_meshes takes one list of meshes, got {1 + len(more)} arguments; pass a list: "
+                        "merge_meshes([a, b])")
     meshes = [] if isinstance(meshes, TetMesh) or not hasattr(meshes, "__iter__") else list(meshes)
     if not meshes:
         raise MeshError("merge_meshes needs a non-empty list of TetMesh, e.g. merge_meshes([mesh_a, mesh_b])")

@@ -19,8 +19,9 @@ import numpy as np
 from .._ti import ti
 
 from ..backend import ensure_taichi
-from ..errors import MeshError
+from ..errors import MeshError, enum_value
 from ..todo import require_implemented
+from .tetmesh import tet_indices
 from .topology import vertex_neighbours
 
 MAX_COLORS = 64
@@ -95,10 +96,13 @@ def color_vertices(tets: np.ndarray, n_vertices: int, order: VertexOrder = Verte
                    key: str = None) -> Coloring:
     """Greedy colouring of the vertex graph of `tets` (M, 4); deterministic for a given order.
 
-    key: a hash of the connectivity (`TetMesh.topology_key()`); when given, results are cached
-    (keyed on it, the order and the source of `_greedy`).
+    order: a `VertexOrder` or its value ("natural", "largest_first"). key: a hash of the connectivity
+    (`TetMesh.topology_key()`); when given, results are cached (keyed on it, the order and the source of
+    `_greedy`). Tets and vertex count are checked as `TetMesh` checks them (a one-line `MeshError`).
     """
     require_implemented(_greedy)
+    order = enum_value(VertexOrder, order, "order (solver.VertexOrder)")
+    tets = tet_indices(tets, n_vertices)
     cache_key = f"{key}-{order.value}-{_greedy_digest()}" if key else None
     if cache_key in _memory_cache:
         return _memory_cache[cache_key]

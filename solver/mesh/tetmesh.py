@@ -137,21 +137,11 @@ def _validated(vertices, tets, original_index):
     ordered tet is reordered on its own; only a mesh that still overlaps itself is rejected.
     """
     vertices = np.asarray(vertices)
-    tets = np.asarray(tets)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
         raise MeshError(f"vertices must be an (N, 3) array, got shape {vertices.shape}; pass 3D points")
-    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
-        raise MeshError(f"the mesh has no tetrahedra (tets shape {tets.shape}); pass a volume mesh, "
-                        "or a closed surface to tetrahedralise with load_mesh")
-    if not np.issubdtype(tets.dtype, np.integer):
-        raise MeshError(f"tet indices must be integers, got {tets.dtype}; cast them with astype(int)")
     vertices = np.array(vertices, dtype=np.float64)
-    tets = np.array(tets, dtype=np.int64)
     n = vertices.shape[0]
-    if tets.min() < 0 or tets.max() >= n:
-        t = np.flatnonzero((tets < 0).any(axis=1) | (tets >= n).any(axis=1))[0]
-        raise MeshError(f"tet {t} has vertex index out of range {tets[t].tolist()} with {n} vertices; "
-                        "indices must be 0-based and below the vertex count")
+    tets = tet_indices(tets, n)
     original = np.arange(n) if original_index is None else np.asarray(original_index, dtype=np.int64)
     used = np.zeros(n, dtype=bool)
     used[tets.ravel()] = True
@@ -185,6 +175,26 @@ def _validated(vertices, tets, original_index):
         raise MeshError(f"{folded.sum()} tets overlap their neighbours (first: tet {t}): the mesh folds over "
                         "itself, so reordering tets cannot fix it; remesh it, e.g. from its boundary surface")
     return vertices, np.ascontiguousarray(tets, dtype=np.int32), original
+
+
+def tet_indices(tets, n_vertices) -> np.ndarray:
+    """`tets` as an (M, 4) int64 copy, checked against `n_vertices`; a one-line `MeshError` for a vertex
+    count that is not an integer >= 1, a shape other than (M, 4) with M >= 1, non-integer entries, or an
+    index outside 0 .. n_vertices - 1."""
+    if isinstance(n_vertices, bool) or not isinstance(n_vertices, numbers.Integral) or n_vertices < 1:
+        raise MeshError(f"the vertex count must be an integer >= 1, got {n_vertices!r}; pass mesh.n_vertices")
+    tets = np.asarray(tets)
+    if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
+        raise MeshError(f"the mesh has no tetrahedra (tets shape {tets.shape}, not (M, 4)); pass a volume mesh, "
+                        "or a closed surface to tetrahedralise with load_mesh")
+    if not np.issubdtype(tets.dtype, np.integer):
+        raise MeshError(f"tet indices must be integers, got {tets.dtype}; cast them with astype(int)")
+    tets = np.array(tets, dtype=np.int64)
+    if tets.min() < 0 or tets.max() >= n_vertices:
+        t = np.flatnonzero((tets < 0).any(axis=1) | (tets >= n_vertices).any(axis=1))[0]
+        raise MeshError(f"tet {t} has vertex index out of range {tets[t].tolist()} with {n_vertices} vertices; "
+                        "indices must be 0-based and below the vertex count")
+    return tets
 
 
 def _folded_tets(tets: np.ndarray) -> np.ndarray:
@@ -296,7 +306,7 @@ def sliver_box_mesh(size=(0.2, 0.2, 0.2), cells=(4, 4, 4), jitter: float = 0.001
 
 def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = None, repair: bool = False,
               mesher=Mesher.VOXELS, edge_length: float = None) -> TetMesh:
-    """Read a volume mesh, or tetrahedralise a closed surface.
+    """Read a volume mesh, or tetrahedralise a closed surface; path: a str, bytes or os.PathLike.
 
     Volume formats: anything meshio reads (.msh, .vtk, .vtu, .mesh, TetGen .node/.ele, ...), with
     tets, hexahedra, wedges and pyramids (split conformingly into tets, `solver.cells`) and their
@@ -354,11 +364,11 @@ def load_mesh(path, resolution: int = 16, *, scale: float = None, fit: float = N
 
 
 def _file_path(path) -> str:
-    """`path` (a str or os.PathLike) as a str, or a one-line `ConfigError`."""
+    """`path` (a str, bytes or os.PathLike) as a str, or a one-line `ConfigError`."""
     try:
-        return os.fspath(path)
+        return os.fsdecode(path)
     except TypeError:
-        raise ConfigError(f"a mesh file path must be a str or pathlib.Path, got {type(path).__name__} "
+        raise ConfigError(f"a mesh file path must be a str, bytes or pathlib.Path, got {type(path).__name__} "
                           f"{path!r}; pass the file's name, e.g. 'bar.msh'") from None
 
 
@@ -389,13 +399,21 @@ def _read_volume(path):
     """(points (N, 3), tets (M, 4)) of a volume file, every cell split into tets."""
     import meshio
 
+    log = io.StringIO()
     try:
-        with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
+        with contextlib.redirect_stderr(log), contextlib.redirect_stdout(log):
             raw = meshio.read(path)
-    except (Exception, SystemExit) as err:  # meshio raises many types, even SystemExit, on bad input
-        reason = str(err).splitlines()[0] if str(err) and not isinstance(err, SystemExit) else "unknown format"
-        raise MeshError(f"{path}: cannot read this file ({reason}); use a format meshio reads, "
+    except meshio.ReadError as err:        # raised by meshio.read itself: no reader for this suffix
+        raise MeshError(f"{path}: cannot read this file ({err}); use a format meshio reads, "
                         "e.g. .msh, .vtu, .vtk, .mesh or TetGen .node/.ele") from None
+    except (Exception, SystemExit) as err:  # the suffix's reader failed: it raised, or printed why and exited
+        if isinstance(err, SystemExit):
+            said = [line.removeprefix("Error: ") for line in log.getvalue().splitlines() if line.strip()]
+        else:
+            said = str(err).splitlines()[:1] or [type(err).__name__]
+        reason = "; ".join(said) or "no reason given"
+        raise MeshError(f"{path}: cannot read this file, it is damaged, truncated or not in the format its "
+                        f"suffix names (meshio: {reason}); export it again") from None
     kinds = sorted({c.type for c in raw.cells})
     unknown = [k for k in kinds if linear_cell(k) is None and not is_lower_dimensional(k)]
     if unknown:
@@ -428,14 +446,20 @@ def _read_surface(path):
     import trimesh
 
     try:
-        surface = trimesh.load(path, force="mesh", process=True)
+        surface = trimesh.load(path, force="mesh", process=False)
+        used = np.unique(surface.faces)
+        bad = used[~np.isfinite(surface.vertices[used]).all(axis=1)]
+        bad_points = surface.vertices[bad]
+        surface.process()        # what trimesh.load does by default, but it drops NaN vertices without a word
     except Exception as err:
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise MeshError(f"{path}: cannot read this surface ({reason}); check the file") from None
+    if len(bad):
+        raise MeshError(f"{path}: {len(bad)} vertices used by triangles have NaN or infinite coordinates (first: "
+                        f"vertex {bad[0]} counting from 0, at {bad_points[0].tolist()}); fix or remove them in the "
+                        "file")
     if len(surface.faces) == 0:
         raise MeshError(f"{path}: has no triangles; give a closed triangle surface")
-    if not np.isfinite(surface.vertices).all():
-        raise MeshError(f"{path}: has NaN or infinite coordinates; fix the file")
     if not surface.is_watertight:
         raise MeshError(f"{path}: the surface is not closed (watertight), so its inside is undefined; "
                         "repair its holes (e.g. in Blender or MeshLab) first")

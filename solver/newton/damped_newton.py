@@ -59,7 +59,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
                   step_tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50, keep_iterates: bool = False,
                   time_budget: Optional[float] = None, chord: Optional[Callable] = None,
                   force_tolerance: Optional[float] = None, name: str = "Newton",
-                  step_cap: Optional[Callable] = None) -> NewtonResult:
+                  step_cap: Optional[Callable] = None, warn_at_cap: bool = True) -> NewtonResult:
     """Minimise G of `problem` (a `StepProblem`: free, constrained_positions, masses, h) from x0 (N, 3).
 
     energy_gradient(x, out) -> G: G(x) in J, dG/dx (N, 3) written into out (zero at constrained vertices).
@@ -76,7 +76,9 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
     step_cap(x, d) -> alpha in (0, 1], or None (alpha = 1): where the line search starts; with contact, the
     largest step that keeps every vertex within its conservative bound (`ContactTerm.step_cap`, or its
     Taichi twin `ContactPairs.step_cap`), so that no iterate crosses a surface.
-    Warns when it stops without converging; `name` names the solver in the warnings.
+    Warns when it stops without converging; `name` names the solver in the warnings. warn_at_cap=False: no
+    warning for running all max_iterations, when they are the user's own budget (`Simulation(iterations=...)`)
+    rather than a safety limit.
     """
     free = problem.free
     x = np.ascontiguousarray(np.where(free[:, None], x0, problem.constrained_positions), dtype=np.float64)
@@ -139,6 +141,7 @@ def damped_newton(problem, energy_gradient: Callable, direction: Callable, x0: n
         if time_budget is not None and result.history[-1].seconds > time_budget:
             break
     result.x = x.copy()
-    if not result.converged and (time_budget is None or result.history[-1].seconds <= time_budget):
+    capped = result.iterations == max_iterations and not warn_at_cap
+    if not result.converged and not capped and (time_budget is None or result.history[-1].seconds <= time_budget):
         warnings.warn(f"{name} did not converge ({result.iterations} iterations)", stacklevel=3)
     return result

@@ -343,9 +343,10 @@ class GlobalNewton:
 
     def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
               keep_iterates: bool = False, time_budget: float = None,
-              force_tolerance: float = None) -> NewtonResult:
+              force_tolerance: float = None, warn_at_cap: bool = True) -> NewtonResult:
         """Minimise G from x0 (N, 3); the loop, convergence test and warnings of `newton_solve`
-        (`damped_newton`: tolerance is its step_tolerance; force_tolerance and time_budget as there).
+        (`damped_newton`: tolerance is its step_tolerance; force_tolerance, time_budget and warn_at_cap as
+        there).
 
         Eigenvalue filtering (after Chen et al. 2024, "Trust-region eigenvalue filtering for projected
         Newton"): the projection that keeps far-away steps safe also slows Newton to linear convergence
@@ -364,7 +365,7 @@ class GlobalNewton:
                              lambda x, g, it, trusted: self.newton_direction(kernels, x, g, not trusted, contact),
                              x0, tolerance, max_iterations, keep_iterates, time_budget,
                              lambda x, g: self.chord_direction(x, g, contact), force_tolerance,
-                             step_cap=None if contact is None else contact.step_cap)
+                             step_cap=None if contact is None else contact.step_cap, warn_at_cap=warn_at_cap)
 
     def chord_direction(self, x: np.ndarray, g: np.ndarray, contact: ContactPairs = None):
         """d (N, 3) solving H_last d = -g with the last factorised Hessian (a back substitution, no new
@@ -428,8 +429,10 @@ def global_newton(tets: np.ndarray, free: np.ndarray, linear_solver=LinearSolver
 
 def fast_newton_solve(problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
                       keep_iterates: bool = False, linear_solver=LinearSolver.AUTO,
-                      force_tolerance: float = None) -> NewtonResult:
+                      force_tolerance: float = None, warn_at_cap: bool = True) -> NewtonResult:
     """Drop-in for `solver.newton_solve`: the same minimisation by the cached `GlobalNewton`
-    (force_tolerance in N: also stop once max_i |dG/dx_i| is below it), contact included."""
+    (force_tolerance in N: also stop once max_i |dG/dx_i| is below it; warn_at_cap as in `damped_newton`),
+    contact included."""
     return global_newton(problem.tets, problem.free, linear_solver).solve(
-        problem, x0, tolerance, max_iterations, keep_iterates, force_tolerance=force_tolerance)
+        problem, x0, tolerance, max_iterations, keep_iterates, force_tolerance=force_tolerance,
+        warn_at_cap=warn_at_cap)

@@ -260,9 +260,10 @@ class NewtonPCG:
         return d, self.max_cg_iterations, relative
 
     def solve(self, problem, x0: np.ndarray, tolerance: float = REFERENCE_TOLERANCE, max_iterations: int = 50,
-              keep_iterates: bool = False, time_budget: float = None, force_tolerance: float = None) -> PCGResult:
+              keep_iterates: bool = False, time_budget: float = None, force_tolerance: float = None,
+              warn_at_cap: bool = True) -> PCGResult:
         """Minimise G from x0 (N, 3); the loop and convergence test of `newton_solve` (`damped_newton`:
-        tolerance is its step_tolerance; force_tolerance and time_budget as there)."""
+        tolerance is its step_tolerance; force_tolerance, time_budget and warn_at_cap as there)."""
         p = self.pattern
         if problem.tets.shape != p.tets.shape or not np.array_equal(problem.free, p.free) \
                 or not np.array_equal(problem.tets, p.tets):
@@ -300,7 +301,7 @@ class NewtonPCG:
             return self.direct.newton_direction(kernels, x, g)
 
         base = damped_newton(problem, kernels.energy_gradient, direction, x0, tolerance, max_iterations,
-                             keep_iterates, time_budget, force_tolerance=force_tolerance)
+                             keep_iterates, time_budget, force_tolerance=force_tolerance, warn_at_cap=warn_at_cap)
         result = PCGResult(base.x, base.iterations, base.converged, base.history, base.iterates)
         result.cg_iterations = cg_counts
         result.direct_iterations = state["direct_iterations"]

@@ -47,8 +47,9 @@ def _two_level(sim):
 def newton_step(sim) -> None:
     """Minimise G of the step with the Taichi Newton (method="newton") or Newton-PCG ("pcg"), at most
     `sim.iterations` Newton iterations, stopping at the relative residual `sim.tolerance` (or, without
-    one, when the Newton step is below NEWTON_STEP_TOLERANCE x the body's size). With contact (newton
-    only) the iterations start from x_n and re-detect the pairs at every iterate."""
+    one, when the Newton step is below NEWTON_STEP_TOLERANCE x the body's size). That cap is the user's
+    budget, so reaching it is not warned about. With contact (newton only) the iterations start from x_n
+    and re-detect the pairs at every iterate."""
     from ..newton.direct import fast_newton_solve
     from ..newton.pcg import newton_pcg
 
@@ -58,10 +59,12 @@ def newton_step(sim) -> None:
     step_tolerance = NEWTON_STEP_TOLERANCE if force_tolerance is None else 0.0
     if sim.method is Method.NEWTON:
         start = sim.positions if problem.contact is None else problem.constrained_positions   # x_n
-        result = fast_newton_solve(problem, start, step_tolerance, sim.iterations, force_tolerance=force_tolerance)
+        result = fast_newton_solve(problem, start, step_tolerance, sim.iterations, force_tolerance=force_tolerance,
+                                   warn_at_cap=False)
     else:
         result = newton_pcg(problem.tets, problem.free).solve(problem, sim.positions, step_tolerance,
-                                                                sim.iterations, force_tolerance=force_tolerance)
+                                                                sim.iterations, force_tolerance=force_tolerance,
+                                                                warn_at_cap=False)
     sim.set_positions(result.x)
     sim.last_iterations = result.iterations
     if sim.record_history:

@@ -1,7 +1,8 @@
 """The live settings of a `Simulation`, validated in one place, and which method honours which.
 
-`Settings` is frozen and keyword-only, like `Material` and `Ground`: every value is checked (and
-names of enums turned into members) when one is made, so `sim.dt = 0.01` is
+`Settings` is frozen and checks every value when one is made (turning names of enums into members),
+like `Material` and `Ground`; unlike them it is keyword-only (`Settings(dt=0.01)`: its fields have no
+natural order, as Material(E, nu, rho) has). So `sim.dt = 0.01` is
 `sim.settings = dataclasses.replace(sim.settings, dt=0.01)` and a bad value never reaches a kernel.
 
 What each setting means for each method (`Method`; "auto" behaves as the method it chose):
@@ -9,7 +10,9 @@ What each setting means for each method (`Method`; "auto" behaves as the method 
     setting                 vbd                         multilevel                   newton, pcg
     iterations              VBD iterations per step     budget of fine sweeps:       Newton iterations per
                                                         iterations // 4 cycles of    step (the cap)
-                                                        2 + coarse + 2 (the cap)
+                                                        2 + coarse + 2 (the cap,
+                                                        rounded down: 4 to 7 run
+                                                        one cycle); below 4 refused
     tolerance               stop once max_i |f_i| <= tolerance x max(max_i |f_i| at the initial guess,
                             max_i m_i |g|) (or round-off): checked every check_every iterations (vbd),
                             after every cycle (multilevel), after every Newton iteration (newton, pcg);
@@ -34,11 +37,16 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..errors import ConfigError, enum_value
-from ..method import Method
+from ..method import MULTILEVEL_CYCLE_SWEEPS, Method
 from ..physics.ground import Ground
 from .implicit_euler import InitialGuess
 
 CHECK_EVERY = 5   # VBD iterations between two tolerance checks when check_every is None (a check ~ an iteration)
+# The time steps h (s) that make physical sense, far wider than any real use: a nanosecond resolves elastic waves
+# in steel (5 km/s) crossing 5 um cells, finer than any mesh this tool runs, and a step of 1000 s (a quarter of an
+# hour, g h^2 = 10^7 m) is quasi-static for any body. Beyond them nothing is gained and floating point fails: h^2
+# underflows (a singular M/h^2) or overflows near h = 1e-154 and 1e154.
+DT_RANGE = (1e-9, 1e3)
 
 
 def number(value, name: str, unit: str) -> float:
@@ -85,8 +93,9 @@ def _gravity(value) -> tuple:
 class Settings:
     """How a `Simulation` steps; every field is live (used from the next iteration or step on).
 
-    dt: time step h in s; gravity: (3,) g in m/s^2; iterations: the budget of a step (per method, see
-    the module docstring); tolerance: relative residual at which a step stops early, or None;
+    dt: time step h in s, within DT_RANGE (1e-9 to 1e3); gravity: (3,) g in m/s^2; iterations: the budget
+    of a step (per method, see the module docstring); tolerance: relative residual at which a step stops
+    early, or None;
     check_every: VBD iterations between two tolerance checks, None for CHECK_EVERY (vbd only);
     initial_guess: an `InitialGuess` or its name; chebyshev_rho: spectral radius estimate rho of
     Chebyshev acceleration (VBD Eq. 18-19), in (0, 1), or None; damping: k_d in s (VBD Eq. 10-11), 0 for
@@ -116,7 +125,11 @@ class Settings:
         def put(name, value):
             object.__setattr__(self, name, value)
 
-        put("dt", positive(self.dt, "dt", "seconds"))
+        dt = positive(self.dt, "dt", "seconds")
+        if not DT_RANGE[0] <= dt <= DT_RANGE[1]:
+            raise ConfigError(f"dt must be between {DT_RANGE[0]:g} and {DT_RANGE[1]:g} seconds, got {self.dt!r}; "
+                              "use a time step in that range (1/60 s suits most scenes)")
+        put("dt", dt)
         put("gravity", _gravity(self.gravity))
         put("iterations", count(self.iterations, "iterations"))
         if self.tolerance is not None:
@@ -163,3 +176,7 @@ def check_method(settings: Settings, method: Method) -> None:
     if settings.keep_orientation:
         raise ConfigError(f"keep_orientation limits VBD's vertex steps, and {use} takes global steps; "
                           "set keep_orientation=False, or use method='vbd'")
+    if method is Method.MULTILEVEL and settings.iterations < MULTILEVEL_CYCLE_SWEEPS:
+        raise ConfigError(f"{use} runs whole cycles of {MULTILEVEL_CYCLE_SWEEPS} fine sweeps (2 + coarse + 2), "
+                          f"so it cannot stop after iterations={settings.iterations}; set iterations >= "
+                          f"{MULTILEVEL_CYCLE_SWEEPS}, or use method='vbd'")
