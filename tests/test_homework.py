@@ -203,9 +203,9 @@ def test_leak_scanner_finds_each_answer_rewritten():
         "        x[v] += np.linalg.solve(H, f[:, :, None])[:, :, 0]\n")
     assert {t for t, _ in leaks(numpy_vbd, answers)} >= {"force_hessian", "vbd_sweep"}
     jacobi = ("            d = ti.Vector.zero(self.sim.dtype, 3)\n"
-              "            Hi = H.inverse()\n"
-              "            if H.norm() * Hi.norm() < limit:\n"
-              "                d = ti.cast(Hi @ f, self.sim.dtype)\n")
+              "            H_inv = H.inverse()\n"
+              "            if H.norm() * H_inv.norm() < max_condition(dtype):\n"
+              "                d = ti.cast(H_inv @ f, dtype)\n")
     assert "vbd_sweep" in {t for t, _ in leaks(jacobi, answers)}
     assert not leaks("def unrelated(a, b):\n    return a + b\n", answers)
 
