@@ -164,6 +164,7 @@ def test_bad_meshes_raise_mesh_error():
     _bad(X, np.zeros((0, 4), int), "no tetrahedra")
     _bad(X, T + 100, "out of range")
     _bad(X, np.vstack([T, [[-1, 0, 1, 2]]]), "out of range")
+    _bad(X, [[0, 1, 2, 3], [0, 1]], "rows of 4 vertex indices")
     nan = X.copy()
     nan[3, 1] = np.nan
     _bad(nan, T, "NaN")

@@ -183,7 +183,10 @@ def tet_indices(tets, n_vertices) -> np.ndarray:
     index outside 0 .. n_vertices - 1."""
     if isinstance(n_vertices, bool) or not isinstance(n_vertices, numbers.Integral) or n_vertices < 1:
         raise MeshError(f"the vertex count must be an integer >= 1, got {n_vertices!r}; pass mesh.n_vertices")
-    tets = np.asarray(tets)
+    try:
+        tets = np.asarray(tets)
+    except ValueError:                          # rows of different lengths
+        raise MeshError("tets must be rows of 4 vertex indices each, and some rows have another length") from None
     if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0:
         raise MeshError(f"the mesh has no tetrahedra (tets shape {tets.shape}, not (M, 4)); pass a volume mesh, "
                         "or a closed surface to tetrahedralise with load_mesh")

@@ -5,7 +5,7 @@
 
 [Smith et al. 2018] without the log term, as in VBD [Chen et al. 2024] Sec. 3. `lam` here is the
 Neo-Hookean lambda, `lam = lam_lame + mu`, so that small strains reproduce linear elasticity with
-Young's modulus E and Poisson ratio nu (lecture notes, chapter 3).
+Young's modulus E and Poisson ratio nu (lecture notes, chapter 1).
 
 Each formula exists twice: as `ti.func` for the kernels, and as batched numpy (`*_np`) for the
 Newton reference and the tests, which check one against the other and against finite differences.
