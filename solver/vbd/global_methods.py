@@ -1,8 +1,8 @@
 """One time step of a `Simulation` by a global method: the thin driver between the lecture's solver and
 the newton wing (imported on first use, so that VBD alone never loads it).
 
-Both start from VBD's initial guess (`Simulation.begin_step`; Newton with contact from x_n, since y, and
-so the guess, may lie across a body) and end with `Simulation.end_step` (translation correction,
+Both start from VBD's initial guess (`Simulation.begin_step`; with contact it is clamped to the contact
+bounds, since y may lie across a body) and end with `Simulation.end_step` (translation correction,
 velocities, clock); what each setting means for them is in `settings.py`.
 """
 import os
@@ -48,8 +48,10 @@ def newton_step(sim) -> None:
     """Minimise G of the step with the Taichi Newton (method="newton") or Newton-PCG ("pcg"), at most
     `sim.iterations` Newton iterations, stopping at the relative residual `sim.tolerance` (or, without
     one, when the Newton step is below NEWTON_STEP_TOLERANCE x the body's size). That cap is the user's
-    budget, so reaching it is not warned about. With contact (newton only) the iterations start from x_n
-    and re-detect the pairs at every iterate."""
+    budget, so reaching it is not warned about. Both start from VBD's initial guess; with contact (newton
+    only) that guess is clamped to the contact bounds from x_n and the kinematic vertices have reached
+    their targets within them (`ContactStage.begin_step`), so no surface crosses there (y may lie across a
+    body, and a kinematic target alone may too), and the iterations re-detect the pairs at every iterate."""
     from ..newton.direct import fast_newton_solve
     from ..newton.pcg import newton_pcg
 
@@ -58,9 +60,8 @@ def newton_step(sim) -> None:
     force_tolerance = sim.stop_below
     step_tolerance = NEWTON_STEP_TOLERANCE if force_tolerance is None else 0.0
     if sim.method is Method.NEWTON:
-        start = sim.positions if problem.contact is None else problem.constrained_positions   # x_n
-        result = fast_newton_solve(problem, start, step_tolerance, sim.iterations, force_tolerance=force_tolerance,
-                                   warn_at_cap=False)
+        result = fast_newton_solve(problem, sim.positions, step_tolerance, sim.iterations,
+                                   force_tolerance=force_tolerance, warn_at_cap=False)
     else:
         result = newton_pcg(problem.tets, problem.free).solve(problem, sim.positions, step_tolerance,
                                                                 sim.iterations, force_tolerance=force_tolerance,
