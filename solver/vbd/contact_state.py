@@ -53,7 +53,7 @@ from .vertex_solve import serial_sweep, unrolled_colors
 
 COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
 NEAR_HORIZON = 0.02         # x radius: the sweep's horizon (module docstring); measured 0.01-0.2 in a resting pile
-KINEMATIC_MOVES = 32        # `move_kinematic`: moves within the bounds before a kinematic target counts as unreachable
+KINEMATIC_STALL = 1e-3      # `move_kinematic`: a move gaining less than this x the distance left is blocked
 
 
 class ContactStage:
@@ -182,20 +182,28 @@ class ContactStage:
         refreshing between them: a prescribed motion then never carries a surface through another, however
         far it goes in a step. Where the bodies in its way keep it from arriving (the gap ahead halves at
         every move while the free vertices wait for the iterations), raise a one-line `ConfigError` and put
-        every vertex back at x_n."""
-        for _ in range(KINEMATIC_MOVES):
+        every vertex back at x_n. In free space every move is g q long, so a far target costs moves (and
+        detections), never a refusal: only a move that gains less than KINEMATIC_STALL of the distance left
+        (the gap ahead nearly closed) counts as blocked."""
+        left = np.inf
+        moves = 0
+        while True:
+            before = left
             left = contact_sweep.advance_kinematic(state, kinematic_ids, kinematic_targets, n_kinematic, self.x_det,
                                                    self.bound, self.dtype)
+            moves += 1
             if left == 0:
                 return
+            if before - left < KINEMATIC_STALL * left:
+                break
             self.refresh(state, X, lists=False)
         x = state.to_numpy()[X][kinematic_ids.to_numpy()[:n_kinematic]]
         short = np.linalg.norm(kinematic_targets.to_numpy()[:n_kinematic] - x, axis=1)
         vertex = int(kinematic_ids.to_numpy()[int(np.argmax(short))])
         implicit_euler.return_to_start(state)
-        raise ConfigError(f"kinematic vertex {vertex} would pass through a body this step: {short.max():.3g} m short "
-                          f"of its target after {KINEMATIC_MOVES} moves within the contact bounds; use a smaller dt "
-                          "or a slower kinematic_motion")
+        raise ConfigError(f"kinematic vertex {vertex} would touch or pass through a body this step: "
+                          f"{short.max():.3g} m short of its target after {moves} moves within the contact bounds; use a smaller dt or a "
+                          "slower kinematic_motion")
 
     def compile_kernels(self, mass, adjacency, params, n_colors: int, sweeps: bool) -> None:
         """Compile now the kernels a run may first launch long after its first step, so that the first
