@@ -1,7 +1,7 @@
 """Newton with contact: what the exact pair Hessians buy where the head_on balls meet.
 
 The Taichi Newton (`GlobalNewton`) solves every step of the `head_on` scene (two soft balls meeting at
-1 m/s each, contact radius 1 cm, no gravity) from x_n, as `Simulation(method="newton")` does: step
+1 m/s each, contact radius 1 cm, no gravity) from x_n, as `Simulation.newton_reference()` does: step
 tolerance 1e-8 of the body size, at most 100 iterations (the demo's cap with contact). The trajectory is
 the scene's VBD one, so both variants solve the same problems. Two variants, solved in turn at every step:
 

@@ -492,7 +492,7 @@ SCENES.update({scene.name: scene for scene in [
                       newton_ghost=True),),
         camera=Camera(eye=(0.15, -1.3, 0.3), target=(0.15, 0.0, 0.0), fov_degrees=38.0),
         gravity=(0.0, 0.0, 0.0), dt=1.0 / 240.0, frames=90,
-        notes=("ghost: the converged trajectory, Newton with contact started from x_n at every step",),
+        notes=("ghost: the converged trajectory, Newton with contact started within the contact bounds every step",),
     ),
     Scene(
         name="self_contact",

@@ -355,8 +355,8 @@ class GlobalNewton:
         others use the exact one (if it is positive definite), which converges quadratically.
 
         With contact (`problem.contact`, a `ContactTerm`): G + E_c by `contact_pairs`, the pairs found
-        again at every iterate, steps capped by the bounds (start from x_n, never y, which may lie across
-        a body)."""
+        again at every iterate, steps capped by the bounds (start where no surface crosses: x_n, or
+        `Simulation.begin_step`'s guess clamped to the bounds; never y, which may lie across a body)."""
         self.check(problem)
         kernels = StepKernels(self.pattern, problem)
         contact = None if problem.contact is None else self.contact_pairs(problem.contact)

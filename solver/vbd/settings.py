@@ -25,9 +25,10 @@ What each setting means for each method (`Method`; "auto" behaves as the method 
     damping, ground         as given                    damping > 0 and ground friction > 0 refused:
                                                         these methods minimise G, which has neither
     keep_orientation        limits guess and sweeps     refused (global steps are not limited)
-    contact (a Simulation   Jacobi contact inside       multilevel, pcg: refused; newton: starts from x_n (y may
-    property, not a field   a colour, bounds            lie across a body), re-detects at every iterate, caps
-    of Settings)                                        its line search by the bounds; friction > 0 refused
+    contact (a Simulation   Jacobi contact inside       multilevel, pcg: refused; newton: starts from VBD's
+    property, not a field   a colour, bounds            guess clamped to the bounds (y may lie across a body),
+    of Settings)                                        re-detects at every iterate, caps its line search by
+                                                        the bounds; friction > 0 refused
     translation_correction, kinematic_motion, dt, gravity, record_history: every method (the translation
     correction changes nothing after an exact Newton step, which leaves no net force on a free body).
 """
