@@ -4,11 +4,13 @@ Three measurements on the pinned cantilever (nu = 0.3, rho = 1000 kg/m^3, h = 1/
 E = 1e6 Pa; the 1,920-tet bar is the stiffness sweep's 0.5 x 0.1 x 0.1 m bar, the others 1 x 0.1 x 0.1 m):
 
 1. a converged step (from y to tolerance 1e-10), warm (after a first call): `newton_solve` against
-   the fast projected Newton (`solver.newton.direct`) with each sparse solver;
+   the fast projected Newton (`solver.newton.direct`) with each sparse solver that is installed (the
+   summary names those that are not: CHOLMOD and cholespy come with pip install -r requirements-cholmod.txt);
 2. one Newton iteration (assembly, solve, line search) on the large bar, same methods;
 3. time and iterations to relative error ||x - x*|| / ||x* - x_n|| <= 1e-4 (and 1e-6) of the direct
-   Newton and of Newton-PCG with each preconditioner (`solver.newton.pcg`), from rest and from a stretched
-   state, where x* is the direct Newton solution to tolerance 1e-12.
+   Newton (with the fastest sparse solver installed, CHOLMOD or else QDLDL, and with SuperLU) and of
+   Newton-PCG with each preconditioner (`solver.newton.pcg`), from rest and from a stretched state,
+   where x* is the direct Newton solution to tolerance 1e-12.
 
 Times are medians of --repeats runs in one process; on a shared machine they are noisy.
 
@@ -49,15 +51,29 @@ def bar_problem(size, cells, youngs_modulus=1e6, state="rest"):
 
 def solvers():
     """name -> function(problem) returning an object with .solve(problem, x0, tolerance, max_iterations,
-    keep_iterates, time_budget): the direct Newton with each sparse solver and Newton-PCG."""
-    from solver.newton.direct import LinearSolver, global_newton
+    keep_iterates, time_budget): the direct Newton with each installed sparse solver (`missing_solvers()`
+    says which are not) and Newton-PCG."""
+    from solver.newton.direct import DirectSolver, LinearSolver, global_newton
     from solver.newton.pcg import Preconditioner, newton_pcg
 
     out = {f"Newton ({s.value})": (lambda p, s=s: global_newton(p.tets, p.free, s)) for s in LinearSolver
-           if s is not LinearSolver.AUTO}
+           if s is not LinearSolver.AUTO and DirectSolver.installed(s)}
     for pre in Preconditioner:
         out[f"Newton-PCG ({pre.value})"] = lambda p, pre=pre: newton_pcg(p.tets, p.free, pre)
     return out
+
+
+def missing_solvers():
+    """A sentence naming the sparse solvers that are not installed, so not measured, and how to install
+    them; empty when all are. (DirectSolver would replace them by SuperLU, under their names.)"""
+    from solver.newton.direct import DirectSolver, LinearSolver
+
+    missing = [s for s in LinearSolver if not DirectSolver.installed(s)]
+    if not missing:
+        return ""
+    files = sorted({"requirements.txt" if s is LinearSolver.QDLDL else "requirements-cholmod.txt" for s in missing})
+    return (f"Skipped, not installed: {', '.join(f'Newton ({s.value})' for s in missing)}; to measure them: "
+            f"pip install {' '.join(f'-r {f}' for f in files)}.")
 
 
 def time_error_points(method, problem, x_star, x_n, budget, tolerance=1e-12, max_iterations=100):
@@ -198,9 +214,12 @@ def main(argv=None):
     args = p.parse_args(argv)
     output_folder(args, FILES)
     init_taichi(args.threads)
-    direct = [name for name in solvers() if name.startswith("Newton (")]
     every = list(solvers())
-    curve_names = ["Newton (cholmod)", "Newton (superlu)"] + [n for n in every if n.startswith("Newton-PCG")]
+    direct = [name for name in every if name.startswith("Newton (")]
+    # time to error: the fastest direct solver installed (CHOLMOD, else QDLDL), SuperLU and Newton-PCG
+    fastest = next(n for n in ("Newton (cholmod)", "Newton (qdldl)", "Newton (superlu)") if n in direct)
+    curve_names = list(dict.fromkeys([fastest, "Newton (superlu)"]))
+    curve_names += [n for n in every if n.startswith("Newton-PCG")]
     if args.quick:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (10, 2, 2)), ((1.0, 0.1, 0.1), (20, 2, 2))
         curve_bars, states, repeats, budget = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"], 1, 5.0
@@ -217,7 +236,7 @@ def main(argv=None):
     write_csv(os.path.join(args.out, "newton_speed.csv"), rows)
     write_csv(os.path.join(args.out, "pcg_curves.csv"), curve_rows)
     plot(curve_rows, os.path.join(args.out, "pcg.png"))
-    text = report(rows)
+    text = "\n\n".join(part for part in (report(rows), missing_solvers()) if part)
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)

@@ -364,6 +364,24 @@ def test_the_readme_says_what_each_benchmark_writes(name):
     assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
 
 
+@pytest.mark.slow
+@pytest.mark.backend
+def test_newton_speed_measures_only_the_installed_linear_solvers(tmp_path, capsys, monkeypatch):
+    """Without cvxopt and cholespy (the default install) there are no CHOLMOD or cholespy rows: they would
+    be SuperLU's times under those names (DirectSolver falls back to it). The summary names them and says
+    how to install them."""
+    monkeypatch.setitem(sys.modules, "cvxopt", None)         # not importable, installed or not
+    monkeypatch.setitem(sys.modules, "cholespy", None)
+    assert _module("newton_speed").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    measured = {r["method"] for r in rows(tmp_path / "newton_speed.csv")}
+    curves = {r["method"] for r in rows(tmp_path / "pcg_curves.csv")}
+    assert {"Newton (qdldl)", "Newton (superlu)"} <= measured and {"Newton (qdldl)", "Newton (superlu)"} <= curves
+    assert not [m for m in measured | curves if "cholmod" in m or "cholespy" in m]
+    skipped = ("Skipped, not installed: Newton (cholmod), Newton (cholespy); to measure them: "
+               "pip install -r requirements-cholmod.txt.")
+    assert skipped in capsys.readouterr().out and skipped in (tmp_path / "summary.md").read_text()
+
+
 @pytest.mark.backend
 def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
