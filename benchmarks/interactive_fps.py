@@ -48,9 +48,12 @@ def measure(scene_name: str, frames: int, ghosts: bool):
 
 
 def main(argv=None):
+    from demo.scenes import SCENES
+
     p = parser(__doc__.split("\n")[0], "benchmarks/results/interactive_fps")
-    p.add_argument("--scenes", nargs="+", default=["stiffness_sweep", "resolution_sweep", "iteration_sweep"],
-                   help="scenes to time")
+    p.add_argument("--scenes", nargs="+", choices=list(SCENES), metavar="SCENE",
+                   default=["stiffness_sweep", "resolution_sweep", "iteration_sweep"],
+                   help=f"scenes to time, of: {', '.join(SCENES)}")
     p.add_argument("--frames", type=positive(int), default=60, help="timed frames per scene and ghost setting")
     args = p.parse_args(argv)
     frames = 5 if args.quick else args.frames

@@ -18,8 +18,8 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (print_written, init_taichi, output_folder, parser, progress, provenance, table, time_to_reach,
-                               write_csv)
+from benchmarks.common import (init_taichi, output_folder, parser, positive, print_written, progress, provenance, table,
+                               time_to_reach, write_csv)
 
 FILES = ("multilevel.csv", "multilevel_summary.csv", "multilevel.png", "summary.md")
 THRESHOLDS = (1e-2, 1e-4)
@@ -101,18 +101,18 @@ def first_reaching(curve, threshold):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/multilevel")
-    p.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16],
+    p.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 8, 16],
                    help="bar resolutions n: cells (10n, n, n), 60 n^3 tets")
-    p.add_argument("--moduli", type=float, nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
+    p.add_argument("--moduli", type=positive(float), nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
     p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"])
-    p.add_argument("--coarsening", type=int, default=2, help="cage cell size in fine cells per axis")
-    p.add_argument("--cycles", type=int, default=25, help="two-level cycles per curve")
-    p.add_argument("--max-sweeps", type=int, default=3000, help="plain VBD sweeps per curve")
-    p.add_argument("--frames", type=int, default=10, help="steps of falling before the 'moving' step")
-    p.add_argument("--repeats", type=int, default=3, help="runs per curve; times are medians")
-    p.add_argument("--newton-max-tets", type=int, default=250_000,
+    p.add_argument("--coarsening", type=positive(int), default=2, help="cage cell size in fine cells per axis")
+    p.add_argument("--cycles", type=positive(int), default=25, help="two-level cycles per curve")
+    p.add_argument("--max-sweeps", type=positive(int), default=3000, help="plain VBD sweeps per curve")
+    p.add_argument("--frames", type=positive(int), default=10, help="steps of falling before the 'moving' step")
+    p.add_argument("--repeats", type=positive(int), default=3, help="runs per curve; times are medians")
+    p.add_argument("--newton-max-tets", type=positive(int), default=250_000,
                    help="largest mesh with a direct Newton reference; above, two-level run to convergence")
-    p.add_argument("--reference-cycles", type=int, default=40, help="two-level cycles of the stand-in reference")
+    p.add_argument("--reference-cycles", type=positive(int), default=40, help="two-level cycles of the stand-in reference")
     args = p.parse_args(argv)
     if args.quick:
         args.sizes, args.moduli, args.states = [2], [1e6, 1e4], ["rest", "moving"]

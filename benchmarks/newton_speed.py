@@ -24,8 +24,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (print_written, format_seconds, init_taichi, output_folder, parser, provenance, table, time_to_reach,
-                               write_csv)
+from benchmarks.common import (format_seconds, init_taichi, output_folder, parser, positive, print_written, provenance,
+                               table, time_to_reach, write_csv)
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
@@ -208,9 +208,9 @@ def report(rows):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_speed")
-    p.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
-    p.add_argument("--budget", type=float, default=30.0, help="seconds per method and case in section 3")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for Taichi (default: all)")
+    p.add_argument("--repeats", type=positive(int), default=5, help="timed runs per measurement (median)")
+    p.add_argument("--budget", type=positive(float), default=30.0, help="seconds per method and case in section 3")
+    p.add_argument("--threads", type=positive(int), default=None, help="CPU threads for Taichi (default: all)")
     args = p.parse_args(argv)
     output_folder(args, FILES)
     init_taichi(args.threads)

@@ -3,6 +3,7 @@ a few stress-grid cells that run in seconds stay as regular tests. No timings ar
 import csv
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -319,19 +320,76 @@ def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match)
     _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
 
 
-@pytest.mark.parametrize("name, argv, match", [
+# Every benchmark module (those with a main()), and a bad value for every option that takes one.
+BENCHMARKS = sorted(name[:-3] for name in os.listdir(os.path.join(ROOT, "benchmarks")) if name.endswith(".py")
+                    and "\ndef main(" in open(os.path.join(ROOT, "benchmarks", name)).read())
+BAD_VALUES = [
     ("pareto", ["--budget", "-1"], "--budget: expected a positive number, got '-1'"),
-    ("pareto", ["--rhos", "1.5"], "between 0 and 1"),
-    ("throughput", ["--min-seconds", "0"], "expected a positive number"),
-    ("stability", ["--steps", "x"], "expected a positive whole number"),
-    ("skip", ["--min-seconds", "nan"], "expected a positive number"),
-    ("contact", ["--steps", "0"], "expected a positive whole number"),
-    ("newton_contact", ["--frames", "-3"], "expected a positive whole number"),
+    ("pareto", ["--max-iterations", "0"], "--max-iterations: expected a positive whole number"),
+    ("pareto", ["--max-cycles", "1.5"], "--max-cycles: expected a positive whole number"),
+    ("pareto", ["--frames", "0"], "--frames: expected a positive whole number"),
+    ("pareto", ["--rhos", "0.9", "1.5"], "between 0 and 1"),
+    ("pareto", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("throughput", ["--threads", "1", "-2"], "--threads: expected a positive whole number, got '-2'"),
+    ("throughput", ["--min-seconds", "0"], "--min-seconds: expected a positive number"),
+    ("throughput", ["--newton-max-tets", "nan"], "--newton-max-tets: expected a positive whole number"),
+    ("throughput", ["--max-tets", "-5"], "--max-tets: expected a positive whole number"),
+    ("stability", ["--iterations", "0"], "--iterations: expected a positive whole number"),
+    ("stability", ["--steps", "x"], "--steps: expected a positive whole number"),
+    ("stability", ["--recovery-rounds", "-1"], "--recovery-rounds: expected a positive whole number"),
+    ("stability", ["--recovery-iterations", "0"], "--recovery-iterations: expected a positive whole number"),
+    ("stability", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("skip", ["--min-seconds", "nan"], "--min-seconds: expected a positive number"),
+    ("newton_speed", ["--repeats", "0"], "--repeats: expected a positive whole number"),
+    ("newton_speed", ["--budget", "inf"], "--budget: expected a positive number"),
+    ("newton_speed", ["--threads", "-2"], "--threads: expected a positive whole number"),
+    ("multilevel", ["--sizes", "1", "0"], "--sizes: expected a positive whole number, got '0'"),
+    ("multilevel", ["--moduli", "-1"], "--moduli: expected a positive number"),
+    ("multilevel", ["--states", "rest", "fast"], "--states: invalid choice: 'fast'"),
+    ("multilevel", ["--coarsening", "0"], "--coarsening: expected a positive whole number"),
+    ("multilevel", ["--cycles", "0"], "--cycles: expected a positive whole number"),
+    ("multilevel", ["--max-sweeps", "0"], "--max-sweeps: expected a positive whole number"),
+    ("multilevel", ["--frames", "-1"], "--frames: expected a positive whole number"),
+    ("multilevel", ["--repeats", "0"], "--repeats: expected a positive whole number"),
+    ("multilevel", ["--newton-max-tets", "0"], "--newton-max-tets: expected a positive whole number"),
+    ("multilevel", ["--reference-cycles", "0"], "--reference-cycles: expected a positive whole number"),
+    ("inversion", ["--meshes", "dragon"], "--meshes: invalid choice: 'dragon'"),
+    ("inversion", ["--steps", "0"], "--steps: expected a positive whole number"),
+    ("inversion", ["--iterations", "0"], "--iterations: expected a positive whole number"),
+    ("inversion", ["--newton-iterations", "0"], "--newton-iterations: expected a positive whole number"),
+    ("inversion", ["--youngs-modulus", "nan"], "--youngs-modulus: expected a positive number"),
+    ("inversion", ["--dt", "-1"], "--dt: expected a time step between 1e-09 and 1000 seconds"),
+    ("inversion", ["--dt", "1e4"], "--dt: expected a time step between 1e-09 and 1000 seconds"),
+    ("inversion", ["--pinned-fraction", "2"], "--pinned-fraction: expected a fraction greater than 0 and at most 1"),
+    ("inversion", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("interactive_fps", ["--scenes", "nosuch"], "--scenes: invalid choice: 'nosuch'"),
+    ("interactive_fps", ["--frames", "0"], "--frames: expected a positive whole number"),
+    ("contact", ["--settle", "0"], "--settle: expected a positive whole number"),
+    ("contact", ["--steps", "0"], "--steps: expected a positive whole number"),
+    ("contact", ["--min-seconds", "-1"], "--min-seconds: expected a positive number"),
+    ("contact", ["--cells", "0"], "--cells: expected a positive whole number"),
+    ("newton_contact", ["--frames", "-3"], "--frames: expected a positive whole number"),
+    ("translation_lag", ["--settle", "0"], "--settle: expected a positive whole number"),
+    ("render_speed", ["--frames", "0"], "--frames: expected a positive whole number"),
     ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
     ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
-])
+    ("render_speed", ["--arch", "tpu"], "--arch: invalid choice: 'tpu'"),
+]
+
+
+@pytest.mark.parametrize("name, argv, match", BAD_VALUES, ids=[f"{n} {' '.join(a)}" for n, a, _ in BAD_VALUES])
 def test_bad_benchmark_arguments_give_one_line_errors(capsys, name, argv, match):
+    """Nonsense is an argparse error (exit 2, one line) before anything runs, not a traceback from the
+    solver or a benchmark that silently runs something else."""
     _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_every_option_that_takes_a_value_has_a_bad_value_case(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    options = set(re.findall(r"^  (--[\w-]+) \S", capsys.readouterr().out, re.M)) - {"--out"}
+    assert options and options == {argv[0] for module, argv, _ in BAD_VALUES if module == name}
 
 
 @pytest.mark.backend
