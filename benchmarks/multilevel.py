@@ -104,7 +104,8 @@ def main(argv=None):
     p.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 8, 16],
                    help="bar resolutions n: cells (10n, n, n), 60 n^3 tets")
     p.add_argument("--moduli", type=positive(float), nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
-    p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"])
+    p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"],
+                   help="starting states of the step: at rest, or moving after --frames steps of falling")
     p.add_argument("--coarsening", type=positive(int), default=2, help="cage cell size in fine cells per axis")
     p.add_argument("--cycles", type=positive(int), default=25, help="two-level cycles per curve")
     p.add_argument("--max-sweeps", type=positive(int), default=3000, help="plain VBD sweeps per curve")

@@ -412,6 +412,28 @@ def test_help_names_the_command(capsys, name):
     assert capsys.readouterr().out.startswith(f"usage: python -m benchmarks.{name} ")
 
 
+def help_entries(text):
+    """{option: (what it takes, its help)} of the options in an argparse --help output."""
+    entries, option = {}, None
+    for line in text.split("options:", 1)[1].splitlines():
+        if re.match(r"  -", line):
+            invocation, _, help = line.strip().partition("  ")
+            option, _, takes = invocation.split(", ")[-1].partition(" ")
+            entries[option] = [takes, help]
+        elif option:
+            entries[option][1] += " " + line
+    return {option: (takes, " ".join(help.split())) for option, (takes, help) in entries.items()}
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_help_says_what_every_option_does_and_its_default(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    for option, (takes, help) in help_entries(capsys.readouterr().out).items():
+        assert len(help.split()) >= 3, f"{option} has no help: {help!r}"
+        assert not takes or "default" in help, f"{option} does not say its default: {help!r}"
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_the_readme_says_what_each_benchmark_writes(name):
     module = _module(name)
