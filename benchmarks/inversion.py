@@ -130,8 +130,8 @@ def summary(rows):
 def main(argv=None):
     p = parser(__doc__.splitlines()[0], os.path.join("benchmarks", "results", "inversion"))
     p.add_argument("--meshes", nargs="+", choices=MESHES, default=["bunny_slivers", "bunny", "bunny_slivers_repaired"],
-                   help="which meshes (--quick: sliver_box)")
-    p.add_argument("--steps", type=positive(int), default=30, help="time steps per mesh (--quick: 5)")
+                   quick=["sliver_box"], help="which meshes")
+    p.add_argument("--steps", type=positive(int), default=30, quick=5, help="time steps per mesh")
     p.add_argument("--iterations", type=positive(int), default=50, help="VBD iterations per step")
     p.add_argument("--newton-iterations", type=positive(int), default=50, help="Newton iteration cap per step")
     p.add_argument("--youngs-modulus", type=positive(float), default=1e5, help="E in Pa")
@@ -140,8 +140,6 @@ def main(argv=None):
                    help="fraction of vertices pinned (the highest; at least one)")
     p.add_argument("--threads", type=positive(int), default=None, help="Taichi CPU threads (default: all)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.meshes, args.steps = ["sliver_box"], 5
     output_folder(args, OUTPUTS)
     init_taichi(args.threads)
     rows = []

@@ -101,23 +101,22 @@ def first_reaching(curve, threshold):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/multilevel")
-    p.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 8, 16],
+    p.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 8, 16], quick=[2],
                    help="bar resolutions n: cells (10n, n, n), 60 n^3 tets")
     p.add_argument("--moduli", type=positive(float), nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
     p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"],
                    help="starting states of the step: at rest, or moving after --frames steps of falling")
     p.add_argument("--coarsening", type=positive(int), default=2, help="cage cell size in fine cells per axis")
-    p.add_argument("--cycles", type=positive(int), default=25, help="two-level cycles per curve")
-    p.add_argument("--max-sweeps", type=positive(int), default=3000, help="plain VBD sweeps per curve")
-    p.add_argument("--frames", type=positive(int), default=10, help="steps of falling before the 'moving' step")
-    p.add_argument("--repeats", type=positive(int), default=3, help="runs per curve; times are medians")
+    p.add_argument("--cycles", type=positive(int), default=25, quick=12, help="two-level cycles per curve")
+    p.add_argument("--max-sweeps", type=positive(int), default=3000, quick=300, help="plain VBD sweeps per curve")
+    p.add_argument("--frames", type=positive(int), default=10, quick=2,
+                   help="steps of falling before the 'moving' step")
+    p.add_argument("--repeats", type=positive(int), default=3, quick=1, help="runs per curve; times are medians")
     p.add_argument("--newton-max-tets", type=positive(int), default=250_000,
                    help="largest mesh with a direct Newton reference; above, two-level run to convergence")
-    p.add_argument("--reference-cycles", type=positive(int), default=40, help="two-level cycles of the stand-in reference")
+    p.add_argument("--reference-cycles", type=positive(int), default=40,
+                   help="two-level cycles of the stand-in reference")
     args = p.parse_args(argv)
-    if args.quick:
-        args.sizes, args.moduli, args.states = [2], [1e6, 1e4], ["rest", "moving"]
-        args.cycles, args.max_sweeps, args.frames, args.repeats = 12, 300, 2, 1
     output_folder(args, FILES)
 
     init_taichi()

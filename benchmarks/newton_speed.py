@@ -207,9 +207,11 @@ def report(rows):
 
 
 def main(argv=None):
-    p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_speed")
-    p.add_argument("--repeats", type=positive(int), default=5, help="timed runs per measurement (median)")
-    p.add_argument("--budget", type=positive(float), default=30.0, help="seconds per method and case in section 3")
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_speed",
+               quick="bars of 240 and 480 tets (not 1,920 to 30,720), from rest only")
+    p.add_argument("--repeats", type=positive(int), default=5, quick=1, help="timed runs per measurement (median)")
+    p.add_argument("--budget", type=positive(float), default=30.0, quick=5.0,
+                   help="seconds per method and case in section 3")
     p.add_argument("--threads", type=positive(int), default=None, help="CPU threads for Taichi (default: all)")
     args = p.parse_args(argv)
     output_folder(args, FILES)
@@ -222,17 +224,17 @@ def main(argv=None):
     curve_names += [n for n in every if n.startswith("Newton-PCG")]
     if args.quick:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (10, 2, 2)), ((1.0, 0.1, 0.1), (20, 2, 2))
-        curve_bars, states, repeats, budget = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"], 1, 5.0
+        curve_bars, states = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"]
     else:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (20, 4, 4)), ((1.0, 0.1, 0.1), (80, 8, 8))
         curve_bars = [((1.0, 0.1, 0.1), (40, 4, 4)), ((1.0, 0.1, 0.1), (80, 8, 8))]
-        states, repeats, budget = ["rest", "stretched"], args.repeats, args.budget
+        states = ["rest", "stretched"]
     os.makedirs(args.out, exist_ok=True)
     rows, curve_rows = [], []
-    measure_steps(rows, "converged step", *step_bar, repeats, 50, direct)
-    measure_steps(rows, "one iteration", *iteration_bar, repeats, 1, direct)
+    measure_steps(rows, "converged step", *step_bar, args.repeats, 50, direct)
+    measure_steps(rows, "one iteration", *iteration_bar, args.repeats, 1, direct)
     for size, cells in curve_bars:
-        measure_curves(curve_rows, rows, size, cells, states, budget, curve_names)
+        measure_curves(curve_rows, rows, size, cells, states, args.budget, curve_names)
     write_csv(os.path.join(args.out, "newton_speed.csv"), rows)
     write_csv(os.path.join(args.out, "pcg_curves.csv"), curve_rows)
     plot(curve_rows, os.path.join(args.out, "pcg.png"))

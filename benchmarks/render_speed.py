@@ -49,16 +49,15 @@ def _size(text):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/render_speed")
-    p.add_argument("--frames", type=positive(int), default=30, help="timed frames")
-    p.add_argument("--size", type=_size, default="1280x720", help="image size WxH")
-    p.add_argument("--cells", type=_triple, default="100,48,2", help="box cells; boundary triangles = 4(xy + xz + yz)")
+    p.add_argument("--frames", type=positive(int), default=30, quick=3, help="timed frames")
+    p.add_argument("--size", type=_size, default="1280x720", quick="320x180", help="image size WxH")
+    p.add_argument("--cells", type=_triple, default="100,48,2", quick="20,10,2",
+                   help="box cells; boundary triangles = 4(xy + xz + yz)")
     p.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
     p.add_argument("--fresh-background", action="store_true",
                    help="recompute the gradient + grid every frame (a moving camera)")
     args = p.parse_args(argv)
     out = Path(output_folder(args, OUTPUTS))
-    if args.quick:
-        args.frames, args.size, args.cells = 3, (320, 180), (20, 10, 2)
     width, height = args.size
     cells = args.cells
 

@@ -220,8 +220,10 @@ def grid(quick=False, all_cells=False):
 
 
 def main(argv=None):
-    p = parser(__doc__.split("\n")[0], "benchmarks/results/stability")
-    p.add_argument("--all", action="store_true", help="the whole grid at both resolutions (1000 cells)")
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/stability",
+               quick=f"the coarse mesh at dt = 1/60 s, E = 1e4 Pa, nu = 0.3, from each of the {len(STATES)} states")
+    p.add_argument("--all", action="store_true", not_quick="it runs a few cells of the coarse mesh",
+                   help="the whole grid at both resolutions (1000 cells)")
     p.add_argument("--iterations", type=positive(int), default=20, help="VBD iterations per step")
     p.add_argument("--steps", type=positive(int), default=3, help="time steps per cell")
     p.add_argument("--recovery-rounds", type=positive(int), default=5, help="quasi-static recovery steps")

@@ -201,14 +201,18 @@ def _bytes_per_tet(sim, precision):
 
 
 def fit_exponent(tets, seconds):
-    """Slope of log(time per iteration) against log(tets)."""
+    """Slope of log(time per iteration) against log(tets); empty (no fit) with fewer than two mesh sizes."""
+    if len(set(tets)) < 2:
+        return ""
     return float(np.polyfit(np.log(tets), np.log(seconds), 1)[0])
 
 
 def main(argv=None):
-    p = parser(__doc__.split("\n")[0], "benchmarks/results/throughput")
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/throughput",
+               quick=f"meshes of {' and '.join(f'{6 * np.prod(c):,}' for c in QUICK_SIZES)} tets")
     p.add_argument("--threads", type=positive(int), nargs="+", default=[1, 2], help="CPU thread counts, one worker each")
-    p.add_argument("--min-seconds", type=positive(float), default=0.6, help="timing length of each measurement")
+    p.add_argument("--min-seconds", type=positive(float), default=0.6, quick=0.03,
+                   help="timing length of each measurement")
     p.add_argument("--newton-max-tets", type=positive(int), default=40_000,
                    help="largest mesh for the Newton iteration (sparse direct solve)")
     p.add_argument("--max-tets", type=positive(int), default=2_000_000, help="skip meshes larger than this")
@@ -220,14 +224,16 @@ def main(argv=None):
         args.threads = args.threads[0]
         return worker(args)
 
-    sizes = QUICK_SIZES if args.quick else [c for c in FULL_SIZES if 6 * np.prod(c) <= args.max_tets]
-    min_seconds = 0.03 if args.quick else args.min_seconds
+    candidates = QUICK_SIZES if args.quick else FULL_SIZES
+    sizes = [c for c in candidates if 6 * np.prod(c) <= args.max_tets]
+    if not sizes:
+        p.error(f"--max-tets {args.max_tets} leaves no mesh: the smallest has {6 * np.prod(candidates[0]):,} tets")
     output_folder(args, OUTPUTS)
     rows = []
     bar = progress(total=len(sizes) * 2 * len(args.threads), desc="throughput", disable=args.no_progress)
     for threads in args.threads:
         cmd = [sys.executable, "-m", "benchmarks.throughput", "--worker", "--threads", str(threads),
-               "--sizes", json.dumps(sizes), "--min-seconds", str(min_seconds),
+               "--sizes", json.dumps(sizes), "--min-seconds", str(args.min_seconds),
                "--newton-max-tets", str(args.newton_max_tets)]
         if threads == max(args.threads):
             cmd.append("--extras")

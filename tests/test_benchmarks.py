@@ -403,6 +403,17 @@ def test_render_speed_quick(tmp_path, capsys):
     assert out.strip().splitlines()[-1] == f"wrote render_speed.csv, render_speed_frame.png into {tmp_path}"
 
 
+@pytest.mark.backend
+def test_render_speed_quick_keeps_the_size_and_frames_given(tmp_path, capsys):
+    from PIL import Image
+
+    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--size", "64x48",
+                                  "--frames", "2"])
+    assert len(rows(tmp_path / "render_speed.csv")) == 2
+    assert Image.open(tmp_path / "render_speed_frame.png").size == (64, 48)
+    assert capsys.readouterr().out.startswith("64x48, ")
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_help_names_the_command(capsys, name):
     module = _module(name)
@@ -432,6 +443,53 @@ def test_help_says_what_every_option_does_and_its_default(capsys, name):
     for option, (takes, help) in help_entries(capsys.readouterr().out).items():
         assert len(help.split()) >= 3, f"{option} has no help: {help!r}"
         assert not takes or "default" in help, f"{option} does not say its default: {help!r}"
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_quick_help_says_what_it_sets(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    entries = help_entries(capsys.readouterr().out)
+    quick = entries.pop("--quick")[1]
+    assert quick.startswith("a small, fast version (what the tests run): "), quick
+    for option, (_, help) in entries.items():
+        value = re.search(r"; --quick: (.*)\)$", help)
+        assert not value or f"{option} {value[1]}" in quick, (option, quick)
+        assert "not with --quick" not in help or f"not with {option}" in quick, (option, quick)
+
+
+def test_quick_sets_only_the_options_not_given(tmp_path):
+    from benchmarks.common import parser, positive
+
+    p = parser("test", str(tmp_path / "results"))
+    p.add_argument("--count", type=positive(int), default=5, quick=1, help="a count")
+    p.add_argument("--names", type=lambda text: text.split(","), default="a,b", quick="c", help="names")
+    full, quick = p.parse_args([]), p.parse_args(["--quick"])
+    assert (full.count, full.names) == (5, ["a", "b"]) and (quick.count, quick.names) == (1, ["c"])
+    assert p.parse_args(["--quick", "--count", "3"]).count == 3
+    assert p.parse_args(["--names", "d", "--quick"]).names == ["d"]
+
+
+@pytest.mark.parametrize("name, argv, match", [
+    ("stability", ["--all"], "--all cannot be used with --quick: it runs a few cells of the coarse mesh; drop one"),
+    ("pareto", ["--frames", "5"], "--frames cannot be used with --quick: it runs no 'moving' step; drop one"),
+    ("throughput", ["--max-tets", "100"], "--max-tets 100 leaves no mesh: the smallest has 144 tets"),
+])
+def test_an_option_quick_cannot_honour_is_refused_with_it(capsys, name, argv, match):
+    """--quick would silently drop these (it runs no 'moving' step, not the whole grid, no mesh that small)."""
+    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+@pytest.mark.backend
+def test_multilevel_quick_keeps_the_options_given(tmp_path):
+    """--quick replaced sizes, moduli, states, cycles, sweeps and repeats even when given."""
+    argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--sizes", "1", "--moduli", "1e4", "--states", "rest",
+            "--cycles", "2", "--max-sweeps", "3"]
+    assert _module("multilevel").main(argv) == 0
+    curves = rows(tmp_path / "multilevel.csv")
+    assert {(r["tets"], r["E"], r["state"]) for r in curves} == {("60", "10000", "rest")}
+    assert max(int(r["sweeps"]) for r in curves if r["method"] == "VBD") == 3
+    assert max(int(r["count"]) for r in curves if r["method"] != "VBD") == 2
 
 
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
