@@ -260,6 +260,15 @@ def format_seconds(v) -> str:
     return f"{v * 1e3:.3g} ms" if v < 1 else f"{v:.3g} s"
 
 
+def _cell(v) -> str:
+    return f"{float(v):.3g}" if isinstance(v, (float, np.floating)) else str(v)
+
+
+def nan_as(text: str):
+    """A `table` format: `text` ("not reached", "-") for NaN, any other value as `table` shows it."""
+    return lambda v: text if isinstance(v, (float, np.floating)) and math.isnan(v) else _cell(v)
+
+
 def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
     """A markdown table of `rows` (dicts) restricted to `columns`."""
     fmt = fmt or {}
@@ -268,9 +277,7 @@ def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
         v = r.get(c, "")
         if c in fmt and v not in ("", None):
             return fmt[c](v)
-        if isinstance(v, (float, np.floating)):
-            return f"{float(v):.3g}"
-        return str(v)
+        return _cell(v)
 
     lines = []
     if title:

@@ -24,8 +24,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (format_seconds, init_taichi, output_folder, parser, positive, print_written, provenance,
-                               table, time_to_reach, write_csv)
+from benchmarks.common import (format_seconds, init_taichi, nan_as, output_folder, parser, positive, print_written,
+                               provenance, table, time_to_reach, write_csv)
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
@@ -200,6 +200,7 @@ def report(rows):
     cols = ["case", "method"] + [f"t_{t:.0e}" for t in THRESHOLDS[1:]] + ["newton_it_1e-04", "cg_it_1e-04",
                                                                            "final_error"]
     fmt = {f"t_{t:.0e}": format_seconds for t in THRESHOLDS}
+    fmt.update({c: nan_as("not reached") for c in ("newton_it_1e-04", "cg_it_1e-04")})
     fmt["final_error"] = lambda v: f"{float(v):.2g}"
     parts.append(table(curves, cols, "Time and iterations to relative error 1e-4 / 1e-6 (x* = direct Newton "
                        "to tolerance 1e-12)", fmt))

@@ -492,6 +492,25 @@ def test_multilevel_quick_keeps_the_options_given(tmp_path):
     assert max(int(r["count"]) for r in curves if r["method"] != "VBD") == 2
 
 
+def test_summary_tables_say_not_reached_or_undefined_instead_of_nan():
+    from benchmarks import multilevel, newton_speed, stability
+
+    nan = float("nan")
+    level = dict(E=1e6, tets=30720, N_c=42.2, state="rest", method="VBD", final_error=0.04, newton_seconds=nan,
+                 reference="two-level 40 cycles", **{"count_to_0.01": 2000, "sweeps_to_0.01": 2000,
+                                                    "seconds_to_0.01": 0.45, "count_to_0.0001": nan,
+                                                    "sweeps_to_0.0001": nan, "seconds_to_0.0001": nan})
+    text = multilevel.report([level])
+    assert "| VBD | 2000 | 0.45 | not reached | not reached | not reached | 0.04 | - | two-level 40 cycles |" in text
+    still = dict(resolution="coarse", tets=144, dt=1 / 60, E=1e4, nu=0.3, state="rest", finite=True, monotone=True,
+                 recovers=True, error=nan, passed=True)
+    text = stability.report([still])
+    assert "| rest | 1 | 1 | 1 | 1 | - | - |" in text and "nan" not in text
+    curve = dict(section="time_to_error", case="480 tets, rest", method="Newton-PCG (color_sweep)", final_error=0.1,
+                 **{"t_1e-04": nan, "t_1e-06": nan, "newton_it_1e-04": nan, "cg_it_1e-04": nan})
+    assert "| not reached | not reached | not reached | not reached | 0.1 |" in newton_speed.report([curve])
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_the_readme_says_what_each_benchmark_writes(name):
     module = _module(name)
