@@ -250,11 +250,28 @@ def main(argv=None):
     bar.close()
     for r in rows:
         r.setdefault("numpy_ns_per_tet_iter", "")
+    fits = scaling_fits(rows, args.threads)
+    write_csv(os.path.join(args.out, "throughput.csv"), rows, COLUMNS + ["flop_rate", "flops_per_tet",
+                                                                       "bytes_per_tet"])
+    write_csv(os.path.join(args.out, "scaling_fit.csv"), fits)
+    plot(rows, os.path.join(args.out, "throughput.png"))
+    text = report(rows, fits)
+    with open(os.path.join(args.out, "summary.md"), "w") as fh:
+        fh.write(f"Produced by {provenance()}.\n\n{text}\n")
+    print(text)
+    print_written(args, OUTPUTS)
+    return rows, fits
+
+
+def scaling_fits(rows, thread_counts):
+    """Growth exponents of time per iteration with mesh size: VBD per precision and thread count over all
+    sizes and over the meshes of 10k tets or more (empty with fewer than two of those), numpy VBD and the
+    Newton iterations over all sizes."""
     fits = []
     for precision in ("float64", "float32"):
-        for threads in args.threads:
+        for threads in thread_counts:
             rs = [r for r in rows if r["precision"] == precision and r["threads"] == threads]
-            big = [r for r in rs if r["tets"] >= 10_000] or rs
+            big = [r for r in rs if r["tets"] >= 10_000]
             fits.append(dict(series=f"VBD {precision} {threads} thread(s)",
                              exponent_all=fit_exponent([r["tets"] for r in rs], [r["ms_per_iter"] for r in rs]),
                              exponent_10k_up=fit_exponent([r["tets"] for r in big], [r["ms_per_iter"] for r in big])))
@@ -268,16 +285,7 @@ def main(argv=None):
             [r["tets"] for r in nt_rows], [r["newton_iter_s"] for r in nt_rows])))
         fits.append(dict(series="fast Newton iteration", exponent_all=fit_exponent(
             [r["tets"] for r in nt_rows], [r["fast_newton_iter_s"] for r in nt_rows])))
-    write_csv(os.path.join(args.out, "throughput.csv"), rows, COLUMNS + ["flop_rate", "flops_per_tet",
-                                                                       "bytes_per_tet"])
-    write_csv(os.path.join(args.out, "scaling_fit.csv"), fits)
-    plot(rows, os.path.join(args.out, "throughput.png"))
-    text = report(rows, fits)
-    with open(os.path.join(args.out, "summary.md"), "w") as fh:
-        fh.write(f"Produced by {provenance()}.\n\n{text}\n")
-    print(text)
-    print_written(args, OUTPUTS)
-    return rows, fits
+    return fits
 
 
 def argparse_hidden():

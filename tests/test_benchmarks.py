@@ -511,6 +511,20 @@ def test_summary_tables_say_not_reached_or_undefined_instead_of_nan():
     assert "| not reached | not reached | not reached | not reached | 0.1 |" in newton_speed.report([curve])
 
 
+def test_throughput_fits_no_exponent_above_10k_tets_without_two_such_meshes():
+    """--quick's meshes (144 and 1,152 tets) filled exponent_10k_up with the fit over all sizes."""
+    from benchmarks.throughput import scaling_fits
+
+    def measured(sizes):
+        return [dict(tets=n, precision=p, threads=1, ms_per_iter=1e-4 * n) for n in sizes
+                for p in ("float64", "float32")]
+
+    small = scaling_fits(measured([144, 1152]), [1])
+    assert [f["exponent_all"] for f in small] == pytest.approx([1.0, 1.0])
+    assert [f["exponent_10k_up"] for f in small] == ["", ""]
+    assert [f["exponent_10k_up"] for f in scaling_fits(measured([144, 12_000, 48_000]), [1])] == pytest.approx([1, 1])
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_the_readme_says_what_each_benchmark_writes(name):
     module = _module(name)
