@@ -414,6 +414,17 @@ def test_render_speed_quick_keeps_the_size_and_frames_given(tmp_path, capsys):
     assert capsys.readouterr().out.startswith("64x48, ")
 
 
+@pytest.mark.backend
+@pytest.mark.filterwarnings("ignore:arch=.* was asked for")
+def test_render_speed_names_the_backend_that_ran_not_the_one_asked_for(tmp_path, capsys, solver_module):
+    """--arch gpu without CUDA renders on the CPU (as here: the other backend than the one running), and its
+    summary said arch=gpu."""
+    ran = "cpu" if solver_module.backend.running_on_cpu() else "gpu"
+    other = {"cpu": "gpu", "gpu": "cpu"}[ran]
+    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--arch", other])
+    assert f" arch={ran}: " in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_help_names_the_command(capsys, name):
     module = _module(name)
