@@ -33,6 +33,14 @@ def _shown(value) -> str:
     return f"{value:g}" if isinstance(value, float) else str(value)
 
 
+class _HelpFormatter(HelpFormatter):
+    """Shows defaults as they would be typed (default: rest moving), not as Python lists."""
+
+    def _get_help_string(self, action):
+        help = super()._get_help_string(action)
+        return help.replace("%(default)s", _shown(action.default).replace("%", "%%"))
+
+
 class _Parser(argparse.ArgumentParser):
     """Bad arguments give a one-line error instead of a usage dump.
 
@@ -94,7 +102,7 @@ def parser(description: str, default_out: str, quick: str = "") -> argparse.Argu
     scratch folder, and existing files are replaced only with --overwrite.
     """
     name = os.path.basename(os.path.normpath(default_out))
-    p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=HelpFormatter,
+    p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=_HelpFormatter,
                 quick_text=quick)
     p.set_defaults(results_folder=default_out)
     p.add_argument("--out", default=None, help=f"folder for the CSV and PNG files (default: {default_out}; with "

@@ -454,6 +454,7 @@ def test_help_says_what_every_option_does_and_its_default(capsys, name):
     for option, (takes, help) in help_entries(capsys.readouterr().out).items():
         assert len(help.split()) >= 3, f"{option} has no help: {help!r}"
         assert not takes or "default" in help, f"{option} does not say its default: {help!r}"
+        assert "default: [" not in help, f"{option} shows its default as a Python list: {help!r}"
 
 
 @pytest.mark.parametrize("name", BENCHMARKS)
