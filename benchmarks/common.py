@@ -26,26 +26,89 @@ def fail(message: str):
     raise SystemExit(2)
 
 
+def _shown(value) -> str:
+    """A value as it would be typed on the command line: 0.2, 1e+06, 320x180, rest moving."""
+    if isinstance(value, (list, tuple)):
+        return " ".join(_shown(v) for v in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
+
+
+class _HelpFormatter(HelpFormatter):
+    """Shows defaults as they would be typed (default: rest moving), not as Python lists."""
+
+    def _get_help_string(self, action):
+        help = super()._get_help_string(action)
+        return help.replace("%(default)s", _shown(action.default).replace("%", "%%"))
+
+
 class _Parser(argparse.ArgumentParser):
-    """Bad arguments give a one-line error instead of a usage dump."""
+    """Bad arguments give a one-line error instead of a usage dump.
+
+    ``add_argument(..., quick=VALUE)`` adds an option that takes VALUE under --quick unless it is given,
+    and ``add_argument(..., not_quick="why")`` one that cannot be given with --quick; --help says both.
+    """
+
+    def __init__(self, *args, quick_text="", **kwargs):
+        super().__init__(*args, **kwargs)
+        self._quick_text = quick_text
+        self._quick = {}        # option -> (action, default, value under --quick or None, why refused or None)
+        self._quick_flag = None
 
     def error(self, message):
         fail(f"{message} (see {self.prog} --help)")
 
+    def add_argument(self, *args, quick=None, not_quick=None, **kwargs):
+        if quick is None and not_quick is None:
+            action = super().add_argument(*args, **kwargs)
+            if action.dest == "quick":
+                self._quick_flag = action
+                self._describe_quick()
+            return action
+        default = kwargs.pop("default", False if kwargs.get("action") == "store_true" else None)
+        action = super().add_argument(*args, default=None, **kwargs)
+        shown = "" if isinstance(default, bool) else f"default: {_shown(default)}; "
+        action.help += f" ({shown}--quick: {_shown(quick)})" if quick is not None else \
+            f" ({shown}not with --quick: {not_quick})"
+        self._quick[action.option_strings[-1]] = (action, default, quick, not_quick)
+        self._describe_quick()
+        return action
 
-def parser(description: str, default_out: str) -> argparse.ArgumentParser:
+    def _describe_quick(self):
+        sets = " ".join(f"{option} {_shown(value)}" for option, (_, _, value, _) in self._quick.items()
+                        if value is not None)
+        refused = ", ".join(option for option, (_, _, _, why) in self._quick.items() if why is not None)
+        what = [part for part in (self._quick_text, sets and f"{sets} unless given",
+                                  refused and f"not with {refused}") if part]
+        self._quick_flag.help = "a small, fast version (what the tests run)" + (f": {'; '.join(what)}" if what else "")
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        for option, (action, default, quick, why) in self._quick.items():
+            value = getattr(namespace, action.dest)
+            if value is not None and why is not None and namespace.quick:
+                self.error(f"{option} cannot be used with --quick: {why}; drop one of them")
+            if value is None:
+                value = quick if namespace.quick and quick is not None else default
+                setattr(namespace, action.dest, action.type(value) if isinstance(value, str) and action.type else value)
+        return namespace, extras
+
+
+def parser(description: str, default_out: str, quick: str = "") -> argparse.ArgumentParser:
     """An argparse parser with the options every benchmark has: --out, --overwrite, --quick, --no-progress.
 
-    Call ``output_folder(args, files)`` after parsing: full runs write into ``default_out`` (the committed
-    results), --quick runs into a new scratch folder, and existing files are replaced only with --overwrite.
+    ``quick`` says what --quick changes besides the options added with ``add_argument(..., quick=VALUE)``
+    (which keep a value given on the command line); --help lists both. Call ``output_folder(args, files)``
+    after parsing: full runs write into ``default_out`` (the committed results), --quick runs into a new
+    scratch folder, and existing files are replaced only with --overwrite.
     """
     name = os.path.basename(os.path.normpath(default_out))
-    p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=HelpFormatter)
+    p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=_HelpFormatter,
+                quick_text=quick)
     p.set_defaults(results_folder=default_out)
     p.add_argument("--out", default=None, help=f"folder for the CSV and PNG files (default: {default_out}; with "
                                                  "--quick a new scratch folder in the system's temporary folder)")
     p.add_argument("--overwrite", action="store_true", help="replace result files already in --out")
-    p.add_argument("--quick", action="store_true", help="a small, fast version (what the tests run)")
+    p.add_argument("--quick", action="store_true")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return p
 
@@ -94,6 +157,31 @@ def positive(kind):
         return value
     parse.__name__ = f"positive {kind.__name__}"
     return parse
+
+
+def fraction(text):
+    """An argparse type: a fraction greater than 0 and at most 1."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction greater than 0 and at most 1, got {text!r}")
+    return value
+
+
+def time_step(text):
+    """An argparse type: a time step in seconds within the range a Simulation accepts."""
+    from solver.vbd.settings import DT_RANGE
+
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not DT_RANGE[0] <= value <= DT_RANGE[1]:
+        raise argparse.ArgumentTypeError(f"expected a time step between {DT_RANGE[0]:g} and {DT_RANGE[1]:g} "
+                                         f"seconds, got {text!r}")
+    return value
 
 
 def spectral_radius(text):
@@ -180,6 +268,15 @@ def format_seconds(v) -> str:
     return f"{v * 1e3:.3g} ms" if v < 1 else f"{v:.3g} s"
 
 
+def _cell(v) -> str:
+    return f"{float(v):.3g}" if isinstance(v, (float, np.floating)) else str(v)
+
+
+def nan_as(text: str):
+    """A `table` format: `text` ("not reached", "-") for NaN, any other value as `table` shows it."""
+    return lambda v: text if isinstance(v, (float, np.floating)) and math.isnan(v) else _cell(v)
+
+
 def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
     """A markdown table of `rows` (dicts) restricted to `columns`."""
     fmt = fmt or {}
@@ -188,9 +285,7 @@ def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
         v = r.get(c, "")
         if c in fmt and v not in ("", None):
             return fmt[c](v)
-        if isinstance(v, (float, np.floating)):
-            return f"{float(v):.3g}"
-        return str(v)
+        return _cell(v)
 
     lines = []
     if title:

@@ -48,16 +48,18 @@ def measure(scene_name: str, frames: int, ghosts: bool):
 
 
 def main(argv=None):
+    from demo.scenes import SCENES
+
     p = parser(__doc__.split("\n")[0], "benchmarks/results/interactive_fps")
-    p.add_argument("--scenes", nargs="+", default=["stiffness_sweep", "resolution_sweep", "iteration_sweep"],
-                   help="scenes to time")
-    p.add_argument("--frames", type=positive(int), default=60, help="timed frames per scene and ghost setting")
+    p.add_argument("--scenes", nargs="+", choices=list(SCENES), metavar="SCENE",
+                   default=["stiffness_sweep", "resolution_sweep", "iteration_sweep"], quick=["stiffness_sweep"],
+                   help=f"scenes to time, of: {', '.join(SCENES)}")
+    p.add_argument("--frames", type=positive(int), default=60, quick=5,
+                   help="timed frames per scene and ghost setting")
     args = p.parse_args(argv)
-    frames = 5 if args.quick else args.frames
-    scene_names = args.scenes[:1] if args.quick else args.scenes
     out = output_folder(args, OUTPUTS)
     init_taichi()
-    rows = [measure(name, frames, ghosts) for name in scene_names for ghosts in (False, True)]
+    rows = [measure(name, args.frames, ghosts) for name in args.scenes for ghosts in (False, True)]
     text = table(rows, COLUMNS, title="Interactive loop, simulation only (rendering excluded)")
     print(text)
     write_csv(f"{out}/interactive_fps.csv", rows, COLUMNS)

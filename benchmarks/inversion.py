@@ -21,7 +21,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import print_written, ROOT, init_taichi, output_folder, parser, progress, provenance, table, write_csv
+from benchmarks.common import (ROOT, fraction, init_taichi, output_folder, parser, positive, print_written, progress,
+                               provenance, table, time_step, write_csv)
 
 MESHES = ("bunny", "bunny_slivers", "bunny_slivers_repaired", "sliver_box")
 COLUMNS = ["mesh", "tets", "slivers", "method", "step", "time", "inverted", "min_det_F", "inverted_at_y",
@@ -129,17 +130,16 @@ def summary(rows):
 def main(argv=None):
     p = parser(__doc__.splitlines()[0], os.path.join("benchmarks", "results", "inversion"))
     p.add_argument("--meshes", nargs="+", choices=MESHES, default=["bunny_slivers", "bunny", "bunny_slivers_repaired"],
-                   help="which meshes (--quick: sliver_box)")
-    p.add_argument("--steps", type=int, default=30, help="time steps per mesh (--quick: 5)")
-    p.add_argument("--iterations", type=int, default=50, help="VBD iterations per step")
-    p.add_argument("--newton-iterations", type=int, default=50, help="Newton iteration cap per step")
-    p.add_argument("--youngs-modulus", type=float, default=1e5, help="E in Pa")
-    p.add_argument("--dt", type=float, default=1 / 60, help="time step in s")
-    p.add_argument("--pinned-fraction", type=float, default=0.05, help="fraction of vertices pinned (the highest)")
-    p.add_argument("--threads", type=int, default=None, help="Taichi CPU threads (default: all)")
+                   quick=["sliver_box"], help="which meshes")
+    p.add_argument("--steps", type=positive(int), default=30, quick=5, help="time steps per mesh")
+    p.add_argument("--iterations", type=positive(int), default=50, help="VBD iterations per step")
+    p.add_argument("--newton-iterations", type=positive(int), default=50, help="Newton iteration cap per step")
+    p.add_argument("--youngs-modulus", type=positive(float), default=1e5, help="E in Pa")
+    p.add_argument("--dt", type=time_step, default=1 / 60, help="time step in s")
+    p.add_argument("--pinned-fraction", type=fraction, default=0.05,
+                   help="fraction of vertices pinned (the highest; at least one)")
+    p.add_argument("--threads", type=positive(int), default=None, help="Taichi CPU threads (default: all)")
     args = p.parse_args(argv)
-    if args.quick:
-        args.meshes, args.steps = ["sliver_box"], 5
     output_folder(args, OUTPUTS)
     init_taichi(args.threads)
     rows = []

@@ -18,8 +18,8 @@ import time
 
 import numpy as np
 
-from benchmarks.common import (print_written, init_taichi, output_folder, parser, progress, provenance, table, time_to_reach,
-                               write_csv)
+from benchmarks.common import (init_taichi, nan_as, output_folder, parser, positive, print_written, progress,
+                               provenance, table, time_to_reach, write_csv)
 
 FILES = ("multilevel.csv", "multilevel_summary.csv", "multilevel.png", "summary.md")
 THRESHOLDS = (1e-2, 1e-4)
@@ -101,22 +101,22 @@ def first_reaching(curve, threshold):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/multilevel")
-    p.add_argument("--sizes", type=int, nargs="+", default=[4, 8, 16],
+    p.add_argument("--sizes", type=positive(int), nargs="+", default=[4, 8, 16], quick=[2],
                    help="bar resolutions n: cells (10n, n, n), 60 n^3 tets")
-    p.add_argument("--moduli", type=float, nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
-    p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"])
-    p.add_argument("--coarsening", type=int, default=2, help="cage cell size in fine cells per axis")
-    p.add_argument("--cycles", type=int, default=25, help="two-level cycles per curve")
-    p.add_argument("--max-sweeps", type=int, default=3000, help="plain VBD sweeps per curve")
-    p.add_argument("--frames", type=int, default=10, help="steps of falling before the 'moving' step")
-    p.add_argument("--repeats", type=int, default=3, help="runs per curve; times are medians")
-    p.add_argument("--newton-max-tets", type=int, default=250_000,
+    p.add_argument("--moduli", type=positive(float), nargs="+", default=[1e6, 1e4], help="Young's moduli in Pa")
+    p.add_argument("--states", nargs="+", default=["rest", "moving"], choices=["rest", "moving"],
+                   help="starting states of the step: at rest, or moving after --frames steps of falling")
+    p.add_argument("--coarsening", type=positive(int), default=2, help="cage cell size in fine cells per axis")
+    p.add_argument("--cycles", type=positive(int), default=25, quick=12, help="two-level cycles per curve")
+    p.add_argument("--max-sweeps", type=positive(int), default=3000, quick=300, help="plain VBD sweeps per curve")
+    p.add_argument("--frames", type=positive(int), default=10, quick=2,
+                   help="steps of falling before the 'moving' step")
+    p.add_argument("--repeats", type=positive(int), default=3, quick=1, help="runs per curve; times are medians")
+    p.add_argument("--newton-max-tets", type=positive(int), default=250_000,
                    help="largest mesh with a direct Newton reference; above, two-level run to convergence")
-    p.add_argument("--reference-cycles", type=int, default=40, help="two-level cycles of the stand-in reference")
+    p.add_argument("--reference-cycles", type=positive(int), default=40,
+                   help="two-level cycles of the stand-in reference")
     args = p.parse_args(argv)
-    if args.quick:
-        args.sizes, args.moduli, args.states = [2], [1e6, 1e4], ["rest", "moving"]
-        args.cycles, args.max_sweeps, args.frames, args.repeats = 12, 300, 2, 1
     output_folder(args, FILES)
 
     init_taichi()
@@ -183,16 +183,24 @@ def main(argv=None):
     text = "\n".join([
         provenance(argv), "",
         "The machine is shared (2 cores, several sessions): times are noisy; compare ratios.", "",
-        table(summary, ["E", "tets", "N_c", "state", "method", "count_to_0.01", "seconds_to_0.01", "count_to_0.0001",
-                        "sweeps_to_0.0001", "seconds_to_0.0001", "final_error", "newton_seconds", "reference"],
-              title="count: cycles (two-level) or sweeps (VBD); kept H_c: the coarse factorisation of an "
-                    "earlier step of the same state is reused, so its time leaves out the coarse assembly"),
-        "", f"![error against time and sweeps]({FILES[2]})", ""])
+        report(summary), "", f"![error against time and sweeps]({FILES[2]})", ""])
     with open(os.path.join(args.out, FILES[3]), "w") as fh:
         fh.write(text)
     print(text)
     print_written(args, FILES)
     return 0
+
+
+def report(summary):
+    """The summary table: "not reached" where a method never got to a threshold, "-" where no direct Newton
+    reference was run (above --newton-max-tets)."""
+    reached = [f"{what}_to_{t:g}" for t in THRESHOLDS for what in ("count", "sweeps", "seconds")]
+    return table(summary, ["E", "tets", "N_c", "state", "method", "count_to_0.01", "seconds_to_0.01",
+                           "count_to_0.0001", "sweeps_to_0.0001", "seconds_to_0.0001", "final_error", "newton_seconds",
+                           "reference"],
+                 title="count: cycles (two-level) or sweeps (VBD); kept H_c: the coarse factorisation of an "
+                       "earlier step of the same state is reused, so its time leaves out the coarse assembly",
+                 fmt=dict({c: nan_as("not reached") for c in reached}, newton_seconds=nan_as("-")))
 
 
 def plot(curves, path):

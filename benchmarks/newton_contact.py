@@ -125,10 +125,12 @@ def plot(rows, path):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_contact")
-    p.add_argument("--frames", type=positive(int), default=36, help="steps of head_on solved by every variant")
+    # --quick: up to the balls' deepest press, steps 18-20
+    p.add_argument("--frames", type=positive(int), default=36, quick=22,
+                   help="steps of head_on solved by every variant")
     args = p.parse_args(argv)
     out = output_folder(args, OUTPUTS)
-    frames = 22 if args.quick else args.frames      # --quick: up to the balls' deepest press, steps 18-20
+    frames = args.frames
     init_taichi()
     import solver
 

@@ -4,11 +4,13 @@ Three measurements on the pinned cantilever (nu = 0.3, rho = 1000 kg/m^3, h = 1/
 E = 1e6 Pa; the 1,920-tet bar is the stiffness sweep's 0.5 x 0.1 x 0.1 m bar, the others 1 x 0.1 x 0.1 m):
 
 1. a converged step (from y to tolerance 1e-10), warm (after a first call): `newton_solve` against
-   the fast projected Newton (`solver.newton.direct`) with each sparse solver;
+   the fast projected Newton (`solver.newton.direct`) with each sparse solver that is installed (the
+   summary names those that are not: CHOLMOD and cholespy come with pip install -r requirements-cholmod.txt);
 2. one Newton iteration (assembly, solve, line search) on the large bar, same methods;
 3. time and iterations to relative error ||x - x*|| / ||x* - x_n|| <= 1e-4 (and 1e-6) of the direct
-   Newton and of Newton-PCG with each preconditioner (`solver.newton.pcg`), from rest and from a stretched
-   state, where x* is the direct Newton solution to tolerance 1e-12.
+   Newton (with the fastest sparse solver installed, CHOLMOD or else QDLDL, and with SuperLU) and of
+   Newton-PCG with each preconditioner (`solver.newton.pcg`), from rest and from a stretched state,
+   where x* is the direct Newton solution to tolerance 1e-12.
 
 Times are medians of --repeats runs in one process; on a shared machine they are noisy.
 
@@ -22,8 +24,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (print_written, format_seconds, init_taichi, output_folder, parser, provenance, table, time_to_reach,
-                               write_csv)
+from benchmarks.common import (format_seconds, init_taichi, nan_as, output_folder, parser, positive, print_written,
+                               provenance, table, time_to_reach, write_csv)
 
 FILES = ("newton_speed.csv", "pcg_curves.csv", "summary.md", "pcg.png")
 THRESHOLDS = (1e-2, 1e-4, 1e-6)
@@ -49,15 +51,29 @@ def bar_problem(size, cells, youngs_modulus=1e6, state="rest"):
 
 def solvers():
     """name -> function(problem) returning an object with .solve(problem, x0, tolerance, max_iterations,
-    keep_iterates, time_budget): the direct Newton with each sparse solver and Newton-PCG."""
-    from solver.newton.direct import LinearSolver, global_newton
+    keep_iterates, time_budget): the direct Newton with each installed sparse solver (`missing_solvers()`
+    says which are not) and Newton-PCG."""
+    from solver.newton.direct import DirectSolver, LinearSolver, global_newton
     from solver.newton.pcg import Preconditioner, newton_pcg
 
     out = {f"Newton ({s.value})": (lambda p, s=s: global_newton(p.tets, p.free, s)) for s in LinearSolver
-           if s is not LinearSolver.AUTO}
+           if s is not LinearSolver.AUTO and DirectSolver.installed(s)}
     for pre in Preconditioner:
         out[f"Newton-PCG ({pre.value})"] = lambda p, pre=pre: newton_pcg(p.tets, p.free, pre)
     return out
+
+
+def missing_solvers():
+    """A sentence naming the sparse solvers that are not installed, so not measured, and how to install
+    them; empty when all are. (DirectSolver would replace them by SuperLU, under their names.)"""
+    from solver.newton.direct import DirectSolver, LinearSolver
+
+    missing = [s for s in LinearSolver if not DirectSolver.installed(s)]
+    if not missing:
+        return ""
+    files = sorted({"requirements.txt" if s is LinearSolver.QDLDL else "requirements-cholmod.txt" for s in missing})
+    return (f"Skipped, not installed: {', '.join(f'Newton ({s.value})' for s in missing)}; to measure them: "
+            f"pip install {' '.join(f'-r {f}' for f in files)}.")
 
 
 def time_error_points(method, problem, x_star, x_n, budget, tolerance=1e-12, max_iterations=100):
@@ -184,6 +200,7 @@ def report(rows):
     cols = ["case", "method"] + [f"t_{t:.0e}" for t in THRESHOLDS[1:]] + ["newton_it_1e-04", "cg_it_1e-04",
                                                                            "final_error"]
     fmt = {f"t_{t:.0e}": format_seconds for t in THRESHOLDS}
+    fmt.update({c: nan_as("not reached") for c in ("newton_it_1e-04", "cg_it_1e-04")})
     fmt["final_error"] = lambda v: f"{float(v):.2g}"
     parts.append(table(curves, cols, "Time and iterations to relative error 1e-4 / 1e-6 (x* = direct Newton "
                        "to tolerance 1e-12)", fmt))
@@ -191,33 +208,38 @@ def report(rows):
 
 
 def main(argv=None):
-    p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_speed")
-    p.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
-    p.add_argument("--budget", type=float, default=30.0, help="seconds per method and case in section 3")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads for Taichi (default: all)")
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/newton_speed",
+               quick="bars of 240 and 480 tets (not 1,920 to 30,720), from rest only")
+    p.add_argument("--repeats", type=positive(int), default=5, quick=1, help="timed runs per measurement (median)")
+    p.add_argument("--budget", type=positive(float), default=30.0, quick=5.0,
+                   help="seconds per method and case in section 3")
+    p.add_argument("--threads", type=positive(int), default=None, help="CPU threads for Taichi (default: all)")
     args = p.parse_args(argv)
     output_folder(args, FILES)
     init_taichi(args.threads)
-    direct = [name for name in solvers() if name.startswith("Newton (")]
     every = list(solvers())
-    curve_names = ["Newton (cholmod)", "Newton (superlu)"] + [n for n in every if n.startswith("Newton-PCG")]
+    direct = [name for name in every if name.startswith("Newton (")]
+    # time to error: the fastest direct solver installed (CHOLMOD, else QDLDL), SuperLU and Newton-PCG
+    fastest = next(n for n in ("Newton (cholmod)", "Newton (qdldl)", "Newton (superlu)") if n in direct)
+    curve_names = list(dict.fromkeys([fastest, "Newton (superlu)"]))
+    curve_names += [n for n in every if n.startswith("Newton-PCG")]
     if args.quick:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (10, 2, 2)), ((1.0, 0.1, 0.1), (20, 2, 2))
-        curve_bars, states, repeats, budget = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"], 1, 5.0
+        curve_bars, states = [((1.0, 0.1, 0.1), (20, 2, 2))], ["rest"]
     else:
         step_bar, iteration_bar = ((0.5, 0.1, 0.1), (20, 4, 4)), ((1.0, 0.1, 0.1), (80, 8, 8))
         curve_bars = [((1.0, 0.1, 0.1), (40, 4, 4)), ((1.0, 0.1, 0.1), (80, 8, 8))]
-        states, repeats, budget = ["rest", "stretched"], args.repeats, args.budget
+        states = ["rest", "stretched"]
     os.makedirs(args.out, exist_ok=True)
     rows, curve_rows = [], []
-    measure_steps(rows, "converged step", *step_bar, repeats, 50, direct)
-    measure_steps(rows, "one iteration", *iteration_bar, repeats, 1, direct)
+    measure_steps(rows, "converged step", *step_bar, args.repeats, 50, direct)
+    measure_steps(rows, "one iteration", *iteration_bar, args.repeats, 1, direct)
     for size, cells in curve_bars:
-        measure_curves(curve_rows, rows, size, cells, states, budget, curve_names)
+        measure_curves(curve_rows, rows, size, cells, states, args.budget, curve_names)
     write_csv(os.path.join(args.out, "newton_speed.csv"), rows)
     write_csv(os.path.join(args.out, "pcg_curves.csv"), curve_rows)
     plot(curve_rows, os.path.join(args.out, "pcg.png"))
-    text = report(rows)
+    text = "\n\n".join(part for part in (report(rows), missing_solvers()) if part)
     with open(os.path.join(args.out, "summary.md"), "w") as fh:
         fh.write(f"Produced by {provenance()}.\n\n{text}\n")
     print(text)

@@ -49,16 +49,16 @@ def _size(text):
 
 def main(argv=None):
     p = parser(__doc__.split("\n")[0], "benchmarks/results/render_speed")
-    p.add_argument("--frames", type=positive(int), default=30, help="timed frames")
-    p.add_argument("--size", type=_size, default="1280x720", help="image size WxH")
-    p.add_argument("--cells", type=_triple, default="100,48,2", help="box cells; boundary triangles = 4(xy + xz + yz)")
-    p.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
+    p.add_argument("--frames", type=positive(int), default=30, quick=3, help="timed frames")
+    p.add_argument("--size", type=_size, default="1280x720", quick="320x180", help="image size WxH")
+    p.add_argument("--cells", type=_triple, default="100,48,2", quick="20,10,2",
+                   help="box cells; boundary triangles = 4(xy + xz + yz)")
+    p.add_argument("--arch", choices=["cpu", "gpu"], default="cpu",
+                   help="Taichi backend (gpu: CUDA; without it the CPU, and the summary says so)")
     p.add_argument("--fresh-background", action="store_true",
                    help="recompute the gradient + grid every frame (a moving camera)")
     args = p.parse_args(argv)
     out = Path(output_folder(args, OUTPUTS))
-    if args.quick:
-        args.frames, args.size, args.cells = 3, (320, 180), (20, 10, 2)
     width, height = args.size
     cells = args.cells
 
@@ -70,10 +70,11 @@ def main(argv=None):
 
     with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not a result
         solver.ensure_taichi(arch=args.arch)
+    arch = "cpu" if solver.backend.running_on_cpu() else "gpu"     # --arch gpu falls back without CUDA
     mesh = solver.box_mesh(size=(1.0, 0.5, 0.02), cells=cells, origin=(-0.5, -0.25, 0.0))
     faces = mesh.boundary_faces()
     rest = mesh.vertices
-    renderer = Renderer(width, height, arch=args.arch)
+    renderer = Renderer(width, height, arch=arch)
     camera = Camera(eye=(0.0, -1.3, 0.8), target=(0.0, 0.0, 0.0), fov_degrees=40)
     grid = GridPlane(point=(0.0, 0.0, -0.3))
     t = colors.normalise(rest[:, 0], -0.5, 0.5)
@@ -103,7 +104,7 @@ def main(argv=None):
         writer.writerows([(r[0], *(f"{v:.3f}" for v in r[1:]), int(args.fresh_background)) for r in rows])
     render_ms = np.median([r[3] for r in rows])
     png_ms = np.median([r[4] for r in rows])
-    print(f"{width}x{height}, {len(faces)} triangles (+ ghost), arch={args.arch}: median {render_ms:.1f} ms per "
+    print(f"{width}x{height}, {len(faces)} triangles (+ ghost), arch={arch}: median {render_ms:.1f} ms per "
           f"frame rendered{' with the background recomputed every frame' if args.fresh_background else ''} "
           f"(PNG encoding adds {png_ms:.1f} ms)")
     print_written(args, OUTPUTS)

@@ -201,14 +201,18 @@ def _bytes_per_tet(sim, precision):
 
 
 def fit_exponent(tets, seconds):
-    """Slope of log(time per iteration) against log(tets)."""
+    """Slope of log(time per iteration) against log(tets); empty (no fit) with fewer than two mesh sizes."""
+    if len(set(tets)) < 2:
+        return ""
     return float(np.polyfit(np.log(tets), np.log(seconds), 1)[0])
 
 
 def main(argv=None):
-    p = parser(__doc__.split("\n")[0], "benchmarks/results/throughput")
+    p = parser(__doc__.split("\n")[0], "benchmarks/results/throughput",
+               quick=f"meshes of {' and '.join(f'{6 * np.prod(c):,}' for c in QUICK_SIZES)} tets")
     p.add_argument("--threads", type=positive(int), nargs="+", default=[1, 2], help="CPU thread counts, one worker each")
-    p.add_argument("--min-seconds", type=positive(float), default=0.6, help="timing length of each measurement")
+    p.add_argument("--min-seconds", type=positive(float), default=0.6, quick=0.03,
+                   help="timing length of each measurement")
     p.add_argument("--newton-max-tets", type=positive(int), default=40_000,
                    help="largest mesh for the Newton iteration (sparse direct solve)")
     p.add_argument("--max-tets", type=positive(int), default=2_000_000, help="skip meshes larger than this")
@@ -220,14 +224,16 @@ def main(argv=None):
         args.threads = args.threads[0]
         return worker(args)
 
-    sizes = QUICK_SIZES if args.quick else [c for c in FULL_SIZES if 6 * np.prod(c) <= args.max_tets]
-    min_seconds = 0.03 if args.quick else args.min_seconds
+    candidates = QUICK_SIZES if args.quick else FULL_SIZES
+    sizes = [c for c in candidates if 6 * np.prod(c) <= args.max_tets]
+    if not sizes:
+        p.error(f"--max-tets {args.max_tets} leaves no mesh: the smallest has {6 * np.prod(candidates[0]):,} tets")
     output_folder(args, OUTPUTS)
     rows = []
     bar = progress(total=len(sizes) * 2 * len(args.threads), desc="throughput", disable=args.no_progress)
     for threads in args.threads:
         cmd = [sys.executable, "-m", "benchmarks.throughput", "--worker", "--threads", str(threads),
-               "--sizes", json.dumps(sizes), "--min-seconds", str(min_seconds),
+               "--sizes", json.dumps(sizes), "--min-seconds", str(args.min_seconds),
                "--newton-max-tets", str(args.newton_max_tets)]
         if threads == max(args.threads):
             cmd.append("--extras")
@@ -244,11 +250,28 @@ def main(argv=None):
     bar.close()
     for r in rows:
         r.setdefault("numpy_ns_per_tet_iter", "")
+    fits = scaling_fits(rows, args.threads)
+    write_csv(os.path.join(args.out, "throughput.csv"), rows, COLUMNS + ["flop_rate", "flops_per_tet",
+                                                                       "bytes_per_tet"])
+    write_csv(os.path.join(args.out, "scaling_fit.csv"), fits)
+    plot(rows, os.path.join(args.out, "throughput.png"))
+    text = report(rows, fits)
+    with open(os.path.join(args.out, "summary.md"), "w") as fh:
+        fh.write(f"Produced by {provenance()}.\n\n{text}\n")
+    print(text)
+    print_written(args, OUTPUTS)
+    return rows, fits
+
+
+def scaling_fits(rows, thread_counts):
+    """Growth exponents of time per iteration with mesh size: VBD per precision and thread count over all
+    sizes and over the meshes of 10k tets or more (empty with fewer than two of those), numpy VBD and the
+    Newton iterations over all sizes."""
     fits = []
     for precision in ("float64", "float32"):
-        for threads in args.threads:
+        for threads in thread_counts:
             rs = [r for r in rows if r["precision"] == precision and r["threads"] == threads]
-            big = [r for r in rs if r["tets"] >= 10_000] or rs
+            big = [r for r in rs if r["tets"] >= 10_000]
             fits.append(dict(series=f"VBD {precision} {threads} thread(s)",
                              exponent_all=fit_exponent([r["tets"] for r in rs], [r["ms_per_iter"] for r in rs]),
                              exponent_10k_up=fit_exponent([r["tets"] for r in big], [r["ms_per_iter"] for r in big])))
@@ -262,16 +285,7 @@ def main(argv=None):
             [r["tets"] for r in nt_rows], [r["newton_iter_s"] for r in nt_rows])))
         fits.append(dict(series="fast Newton iteration", exponent_all=fit_exponent(
             [r["tets"] for r in nt_rows], [r["fast_newton_iter_s"] for r in nt_rows])))
-    write_csv(os.path.join(args.out, "throughput.csv"), rows, COLUMNS + ["flop_rate", "flops_per_tet",
-                                                                       "bytes_per_tet"])
-    write_csv(os.path.join(args.out, "scaling_fit.csv"), fits)
-    plot(rows, os.path.join(args.out, "throughput.png"))
-    text = report(rows, fits)
-    with open(os.path.join(args.out, "summary.md"), "w") as fh:
-        fh.write(f"Produced by {provenance()}.\n\n{text}\n")
-    print(text)
-    print_written(args, OUTPUTS)
-    return rows, fits
+    return fits
 
 
 def argparse_hidden():

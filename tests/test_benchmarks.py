@@ -3,6 +3,7 @@ a few stress-grid cells that run in seconds stay as regular tests. No timings ar
 import csv
 import math
 import os
+import re
 import subprocess
 import sys
 
@@ -319,19 +320,76 @@ def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match)
     _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
 
 
-@pytest.mark.parametrize("name, argv, match", [
+# Every benchmark module (those with a main()), and a bad value for every option that takes one.
+BENCHMARKS = sorted(name[:-3] for name in os.listdir(os.path.join(ROOT, "benchmarks")) if name.endswith(".py")
+                    and "\ndef main(" in open(os.path.join(ROOT, "benchmarks", name)).read())
+BAD_VALUES = [
     ("pareto", ["--budget", "-1"], "--budget: expected a positive number, got '-1'"),
-    ("pareto", ["--rhos", "1.5"], "between 0 and 1"),
-    ("throughput", ["--min-seconds", "0"], "expected a positive number"),
-    ("stability", ["--steps", "x"], "expected a positive whole number"),
-    ("skip", ["--min-seconds", "nan"], "expected a positive number"),
-    ("contact", ["--steps", "0"], "expected a positive whole number"),
-    ("newton_contact", ["--frames", "-3"], "expected a positive whole number"),
+    ("pareto", ["--max-iterations", "0"], "--max-iterations: expected a positive whole number"),
+    ("pareto", ["--max-cycles", "1.5"], "--max-cycles: expected a positive whole number"),
+    ("pareto", ["--frames", "0"], "--frames: expected a positive whole number"),
+    ("pareto", ["--rhos", "0.9", "1.5"], "between 0 and 1"),
+    ("pareto", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("throughput", ["--threads", "1", "-2"], "--threads: expected a positive whole number, got '-2'"),
+    ("throughput", ["--min-seconds", "0"], "--min-seconds: expected a positive number"),
+    ("throughput", ["--newton-max-tets", "nan"], "--newton-max-tets: expected a positive whole number"),
+    ("throughput", ["--max-tets", "-5"], "--max-tets: expected a positive whole number"),
+    ("stability", ["--iterations", "0"], "--iterations: expected a positive whole number"),
+    ("stability", ["--steps", "x"], "--steps: expected a positive whole number"),
+    ("stability", ["--recovery-rounds", "-1"], "--recovery-rounds: expected a positive whole number"),
+    ("stability", ["--recovery-iterations", "0"], "--recovery-iterations: expected a positive whole number"),
+    ("stability", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("skip", ["--min-seconds", "nan"], "--min-seconds: expected a positive number"),
+    ("newton_speed", ["--repeats", "0"], "--repeats: expected a positive whole number"),
+    ("newton_speed", ["--budget", "inf"], "--budget: expected a positive number"),
+    ("newton_speed", ["--threads", "-2"], "--threads: expected a positive whole number"),
+    ("multilevel", ["--sizes", "1", "0"], "--sizes: expected a positive whole number, got '0'"),
+    ("multilevel", ["--moduli", "-1"], "--moduli: expected a positive number"),
+    ("multilevel", ["--states", "rest", "fast"], "--states: invalid choice: 'fast'"),
+    ("multilevel", ["--coarsening", "0"], "--coarsening: expected a positive whole number"),
+    ("multilevel", ["--cycles", "0"], "--cycles: expected a positive whole number"),
+    ("multilevel", ["--max-sweeps", "0"], "--max-sweeps: expected a positive whole number"),
+    ("multilevel", ["--frames", "-1"], "--frames: expected a positive whole number"),
+    ("multilevel", ["--repeats", "0"], "--repeats: expected a positive whole number"),
+    ("multilevel", ["--newton-max-tets", "0"], "--newton-max-tets: expected a positive whole number"),
+    ("multilevel", ["--reference-cycles", "0"], "--reference-cycles: expected a positive whole number"),
+    ("inversion", ["--meshes", "dragon"], "--meshes: invalid choice: 'dragon'"),
+    ("inversion", ["--steps", "0"], "--steps: expected a positive whole number"),
+    ("inversion", ["--iterations", "0"], "--iterations: expected a positive whole number"),
+    ("inversion", ["--newton-iterations", "0"], "--newton-iterations: expected a positive whole number"),
+    ("inversion", ["--youngs-modulus", "nan"], "--youngs-modulus: expected a positive number"),
+    ("inversion", ["--dt", "-1"], "--dt: expected a time step between 1e-09 and 1000 seconds"),
+    ("inversion", ["--dt", "1e4"], "--dt: expected a time step between 1e-09 and 1000 seconds"),
+    ("inversion", ["--pinned-fraction", "2"], "--pinned-fraction: expected a fraction greater than 0 and at most 1"),
+    ("inversion", ["--threads", "0"], "--threads: expected a positive whole number"),
+    ("interactive_fps", ["--scenes", "nosuch"], "--scenes: invalid choice: 'nosuch'"),
+    ("interactive_fps", ["--frames", "0"], "--frames: expected a positive whole number"),
+    ("contact", ["--settle", "0"], "--settle: expected a positive whole number"),
+    ("contact", ["--steps", "0"], "--steps: expected a positive whole number"),
+    ("contact", ["--min-seconds", "-1"], "--min-seconds: expected a positive number"),
+    ("contact", ["--cells", "0"], "--cells: expected a positive whole number"),
+    ("newton_contact", ["--frames", "-3"], "--frames: expected a positive whole number"),
+    ("translation_lag", ["--settle", "0"], "--settle: expected a positive whole number"),
+    ("render_speed", ["--frames", "0"], "--frames: expected a positive whole number"),
     ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
     ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
-])
+    ("render_speed", ["--arch", "tpu"], "--arch: invalid choice: 'tpu'"),
+]
+
+
+@pytest.mark.parametrize("name, argv, match", BAD_VALUES, ids=[f"{n} {' '.join(a)}" for n, a, _ in BAD_VALUES])
 def test_bad_benchmark_arguments_give_one_line_errors(capsys, name, argv, match):
+    """Nonsense is an argparse error (exit 2, one line) before anything runs, not a traceback from the
+    solver or a benchmark that silently runs something else."""
     _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_every_option_that_takes_a_value_has_a_bad_value_case(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    options = set(re.findall(r"^  (--[\w-]+) \S", capsys.readouterr().out, re.M)) - {"--out"}
+    assert options and options == {argv[0] for module, argv, _ in BAD_VALUES if module == name}
 
 
 @pytest.mark.backend
@@ -345,6 +403,28 @@ def test_render_speed_quick(tmp_path, capsys):
     assert out.strip().splitlines()[-1] == f"wrote render_speed.csv, render_speed_frame.png into {tmp_path}"
 
 
+@pytest.mark.backend
+def test_render_speed_quick_keeps_the_size_and_frames_given(tmp_path, capsys):
+    from PIL import Image
+
+    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--size", "64x48",
+                                  "--frames", "2"])
+    assert len(rows(tmp_path / "render_speed.csv")) == 2
+    assert Image.open(tmp_path / "render_speed_frame.png").size == (64, 48)
+    assert capsys.readouterr().out.startswith("64x48, ")
+
+
+@pytest.mark.backend
+@pytest.mark.filterwarnings("ignore:arch=.* was asked for")
+def test_render_speed_names_the_backend_that_ran_not_the_one_asked_for(tmp_path, capsys, solver_module):
+    """--arch gpu without CUDA renders on the CPU (as here: the other backend than the one running), and its
+    summary said arch=gpu."""
+    ran = "cpu" if solver_module.backend.running_on_cpu() else "gpu"
+    other = {"cpu": "gpu", "gpu": "cpu"}[ran]
+    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--arch", other])
+    assert f" arch={ran}: " in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_help_names_the_command(capsys, name):
     module = _module(name)
@@ -352,6 +432,109 @@ def test_help_names_the_command(capsys, name):
         module.main(["--help"])
     assert stop.value.code == 0
     assert capsys.readouterr().out.startswith(f"usage: python -m benchmarks.{name} ")
+
+
+def help_entries(text):
+    """{option: (what it takes, its help)} of the options in an argparse --help output."""
+    entries, option = {}, None
+    for line in text.split("options:", 1)[1].splitlines():
+        if re.match(r"  -", line):
+            invocation, _, help = line.strip().partition("  ")
+            option, _, takes = invocation.split(", ")[-1].partition(" ")
+            entries[option] = [takes, help]
+        elif option:
+            entries[option][1] += " " + line
+    return {option: (takes, " ".join(help.split())) for option, (takes, help) in entries.items()}
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_help_says_what_every_option_does_and_its_default(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    for option, (takes, help) in help_entries(capsys.readouterr().out).items():
+        assert len(help.split()) >= 3, f"{option} has no help: {help!r}"
+        assert not takes or "default" in help, f"{option} does not say its default: {help!r}"
+        assert "default: [" not in help, f"{option} shows its default as a Python list: {help!r}"
+
+
+@pytest.mark.parametrize("name", BENCHMARKS)
+def test_quick_help_says_what_it_sets(capsys, name):
+    with pytest.raises(SystemExit):
+        _module(name).main(["--help"])
+    entries = help_entries(capsys.readouterr().out)
+    quick = entries.pop("--quick")[1]
+    assert quick.startswith("a small, fast version (what the tests run): "), quick
+    for option, (_, help) in entries.items():
+        value = re.search(r"; --quick: (.*)\)$", help)
+        assert not value or f"{option} {value[1]}" in quick, (option, quick)
+        assert "not with --quick" not in help or f"not with {option}" in quick, (option, quick)
+
+
+def test_quick_sets_only_the_options_not_given(tmp_path):
+    from benchmarks.common import parser, positive
+
+    p = parser("test", str(tmp_path / "results"))
+    p.add_argument("--count", type=positive(int), default=5, quick=1, help="a count")
+    p.add_argument("--names", type=lambda text: text.split(","), default="a,b", quick="c", help="names")
+    full, quick = p.parse_args([]), p.parse_args(["--quick"])
+    assert (full.count, full.names) == (5, ["a", "b"]) and (quick.count, quick.names) == (1, ["c"])
+    assert p.parse_args(["--quick", "--count", "3"]).count == 3
+    assert p.parse_args(["--names", "d", "--quick"]).names == ["d"]
+
+
+@pytest.mark.parametrize("name, argv, match", [
+    ("stability", ["--all"], "--all cannot be used with --quick: it runs a few cells of the coarse mesh; drop one"),
+    ("pareto", ["--frames", "5"], "--frames cannot be used with --quick: it runs no 'moving' step; drop one"),
+    ("throughput", ["--max-tets", "100"], "--max-tets 100 leaves no mesh: the smallest has 144 tets"),
+])
+def test_an_option_quick_cannot_honour_is_refused_with_it(capsys, name, argv, match):
+    """--quick would silently drop these (it runs no 'moving' step, not the whole grid, no mesh that small)."""
+    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+
+
+@pytest.mark.backend
+def test_multilevel_quick_keeps_the_options_given(tmp_path):
+    """--quick replaced sizes, moduli, states, cycles, sweeps and repeats even when given."""
+    argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--sizes", "1", "--moduli", "1e4", "--states", "rest",
+            "--cycles", "2", "--max-sweeps", "3"]
+    assert _module("multilevel").main(argv) == 0
+    curves = rows(tmp_path / "multilevel.csv")
+    assert {(r["tets"], r["E"], r["state"]) for r in curves} == {("60", "10000", "rest")}
+    assert max(int(r["sweeps"]) for r in curves if r["method"] == "VBD") == 3
+    assert max(int(r["count"]) for r in curves if r["method"] != "VBD") == 2
+
+
+def test_summary_tables_say_not_reached_or_undefined_instead_of_nan():
+    from benchmarks import multilevel, newton_speed, stability
+
+    nan = float("nan")
+    level = dict(E=1e6, tets=30720, N_c=42.2, state="rest", method="VBD", final_error=0.04, newton_seconds=nan,
+                 reference="two-level 40 cycles", **{"count_to_0.01": 2000, "sweeps_to_0.01": 2000,
+                                                    "seconds_to_0.01": 0.45, "count_to_0.0001": nan,
+                                                    "sweeps_to_0.0001": nan, "seconds_to_0.0001": nan})
+    text = multilevel.report([level])
+    assert "| VBD | 2000 | 0.45 | not reached | not reached | not reached | 0.04 | - | two-level 40 cycles |" in text
+    still = dict(resolution="coarse", tets=144, dt=1 / 60, E=1e4, nu=0.3, state="rest", finite=True, monotone=True,
+                 recovers=True, error=nan, passed=True)
+    text = stability.report([still])
+    assert "| rest | 1 | 1 | 1 | 1 | - | - |" in text and "nan" not in text
+    curve = dict(section="time_to_error", case="480 tets, rest", method="Newton-PCG (color_sweep)", final_error=0.1,
+                 **{"t_1e-04": nan, "t_1e-06": nan, "newton_it_1e-04": nan, "cg_it_1e-04": nan})
+    assert "| not reached | not reached | not reached | not reached | 0.1 |" in newton_speed.report([curve])
+
+
+def test_throughput_fits_no_exponent_above_10k_tets_without_two_such_meshes():
+    """--quick's meshes (144 and 1,152 tets) filled exponent_10k_up with the fit over all sizes."""
+    from benchmarks.throughput import scaling_fits
+
+    def measured(sizes):
+        return [dict(tets=n, precision=p, threads=1, ms_per_iter=1e-4 * n) for n in sizes
+                for p in ("float64", "float32")]
+
+    small = scaling_fits(measured([144, 1152]), [1])
+    assert [f["exponent_all"] for f in small] == pytest.approx([1.0, 1.0])
+    assert [f["exponent_10k_up"] for f in small] == ["", ""]
+    assert [f["exponent_10k_up"] for f in scaling_fits(measured([144, 12_000, 48_000]), [1])] == pytest.approx([1, 1])
 
 
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
@@ -362,6 +545,24 @@ def test_the_readme_says_what_each_benchmark_writes(name):
         row = next(line for line in fh if line.startswith(f"| `.venv/bin/python -m benchmarks.{name}` |"))
     written = row.rstrip().rstrip("|").rsplit("|", 1)[1]
     assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
+
+
+@pytest.mark.slow
+@pytest.mark.backend
+def test_newton_speed_measures_only_the_installed_linear_solvers(tmp_path, capsys, monkeypatch):
+    """Without cvxopt and cholespy (the default install) there are no CHOLMOD or cholespy rows: they would
+    be SuperLU's times under those names (DirectSolver falls back to it). The summary names them and says
+    how to install them."""
+    monkeypatch.setitem(sys.modules, "cvxopt", None)         # not importable, installed or not
+    monkeypatch.setitem(sys.modules, "cholespy", None)
+    assert _module("newton_speed").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    measured = {r["method"] for r in rows(tmp_path / "newton_speed.csv")}
+    curves = {r["method"] for r in rows(tmp_path / "pcg_curves.csv")}
+    assert {"Newton (qdldl)", "Newton (superlu)"} <= measured and {"Newton (qdldl)", "Newton (superlu)"} <= curves
+    assert not [m for m in measured | curves if "cholmod" in m or "cholespy" in m]
+    skipped = ("Skipped, not installed: Newton (cholmod), Newton (cholespy); to measure them: "
+               "pip install -r requirements-cholmod.txt.")
+    assert skipped in capsys.readouterr().out and skipped in (tmp_path / "summary.md").read_text()
 
 
 @pytest.mark.backend

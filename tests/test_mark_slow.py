@@ -53,3 +53,15 @@ def test_unreadable_results_end_in_one_line(tmp_path, capsys, content, match):
     assert mark_slow.main([str(results)]) == 1
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and match in err
+
+
+@pytest.mark.parametrize("threshold", ["nan", "-1", "0", "inf", "five"])
+def test_a_threshold_that_is_not_a_positive_number_of_seconds_is_a_one_line_argparse_error(tmp_path, capsys,
+                                                                                          threshold):
+    results = tmp_path / "durations.txt"
+    results.write_text(DURATIONS)
+    with pytest.raises(SystemExit) as stop:
+        mark_slow.main([str(results), "--threshold", threshold])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"--threshold: expected a positive number of seconds, got '{threshold}'" in err

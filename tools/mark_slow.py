@@ -18,6 +18,7 @@ Tests the run skipped are not judged (a junit file says which; durations text do
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import subprocess
 import sys
@@ -112,11 +113,30 @@ def report(advice: Advice, threshold: float) -> str:
     return "\n".join(lines)
 
 
+class _Parser(argparse.ArgumentParser):
+    """Bad arguments give a one-line error (exit status 2) instead of a usage dump."""
+
+    def error(self, message):
+        print(f"error: {message} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(2)
+
+
+def positive_seconds(text):
+    """An argparse type: a positive, finite number of seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not value > 0 or not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a positive number of seconds, got {text!r}")
+    return value
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0],
-                                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser = _Parser(prog="tools/mark_slow.py", description=__doc__.splitlines()[0],
+                     formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("results", type=Path, help="pytest --junitxml file, or saved --durations=0 output")
-    parser.add_argument("--threshold", type=float, default=5.0, help="seconds above which a test is slow")
+    parser.add_argument("--threshold", type=positive_seconds, default=5.0, help="seconds above which a test is slow")
     args = parser.parse_args(argv)
     try:
         if not args.results.is_file():

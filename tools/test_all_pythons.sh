@@ -1,15 +1,33 @@
 #!/usr/bin/env bash
+# usage: tools/test_all_pythons.sh [-h] [-- PYTEST_ARGUMENTS...]
+#
 # Run the test suite on every supported CPython (3.10-3.13) found on this machine, one after the other,
 # each in a fresh venv made with the README's install command; and check that every unsupported
 # CPython found (3.7-3.9, 3.14, 3.15) is stopped by that command with one line.
 #
-#   tools/test_all_pythons.sh                   # the whole suite on each version
-#   tools/test_all_pythons.sh -m "not slow"     # the fast subset; any pytest arguments go through
+#   tools/test_all_pythons.sh                       # the whole suite on each version
+#   tools/test_all_pythons.sh -- -m "not slow"      # the fast subset; pytest's arguments go after --
+#   tools/test_all_pythons.sh -h                    # this help (--help too)
 #
 # Pythons are looked up as python3.X on PATH and under $PYENV_ROOT/versions (default ~/.pyenv);
 # venvs are made under $VBD_PYTHONS_DIR (default ~/.cache/vbd-taichi/pythons) and replaced each run.
 # Prints one result line per version and exits non-zero if any version failed.
+
 set -uo pipefail
+while [ $# -gt 0 ]; do
+    case "$1" in
+        -h | --help)    # the comment above, without its '#'
+            sed -n '2,/^$/s/^# \{0,1\}//p' "$0"
+            exit 0 ;;
+        --)
+            shift
+            break ;;
+        *)
+            echo "error: unknown argument '$1'; pytest's arguments go after --, for example: $0 -- -m 'not slow'" \
+                 "(see $0 --help)" >&2
+            exit 2 ;;
+    esac
+done
 cd "$(dirname "$0")/.."
 venvs=${VBD_PYTHONS_DIR:-${XDG_CACHE_HOME:-$HOME/.cache}/vbd-taichi/pythons}
 pyenv_root=${PYENV_ROOT:-$HOME/.pyenv}

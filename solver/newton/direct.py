@@ -92,7 +92,7 @@ class DirectSolver:
 
     @classmethod
     def _auto(cls, n_dofs):
-        if cls._importable("cvxopt"):
+        if cls.installed(LinearSolver.CHOLMOD):
             return LinearSolver.CHOLMOD
         return LinearSolver.QDLDL if n_dofs <= AUTO_QDLDL_MAX_UNKNOWNS else LinearSolver.SUPERLU
 
@@ -105,10 +105,16 @@ class DirectSolver:
         return True
 
     @classmethod
-    def _available(cls, kind):
+    def installed(cls, kind: LinearSolver) -> bool:
+        """Whether `kind` can run here: its optional package imports (SuperLU, in scipy, always can)."""
         module = cls._MODULES.get(kind)
-        if module is None or cls._importable(module):
+        return module is None or cls._importable(module)
+
+    @classmethod
+    def _available(cls, kind):
+        if cls.installed(kind):
             return kind
+        module = cls._MODULES[kind]
         install = "requirements.txt" if module == "qdldl" else "requirements-cholmod.txt"
         warn_once(f"missing-{module}", f"the optional sparse solver {module!r} is not installed "
                   f"(pip install -r {install}); using scipy's SuperLU instead")
