@@ -34,6 +34,7 @@ DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
 def build_parser():
     from . import scenes
     from .export import ExportFormat
+    from .interactive import MIN_SIZE, window_size
     from .video import VideoFormat
 
     formatter = HelpFormatter
@@ -70,7 +71,8 @@ def build_parser():
                                  formatter_class=formatter)
     interactive.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
-    interactive.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="window size in pixels")
+    interactive.add_argument("--size", type=window_size, default="1280x720", metavar="WxH",
+                             help=f"window size in pixels, at least {MIN_SIZE[0]}x{MIN_SIZE[1]}")
 
     for command, what in (("homework", "homework tools"), ("figures", "lecture figures")):
         if available(command):     # a homework starter has no demo/figures.py: --help does not offer it
