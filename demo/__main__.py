@@ -20,8 +20,8 @@ import numpy as np  # noqa: E402
 
 import solver  # noqa: E402
 
-from .cli import (HelpFormatter, Parser, folder, image_size, iterations, positive, python_command,  # noqa: E402
-                  seconds, start_taichi, time_step, youngs_modulus)
+from .cli import (MAX_FPS, MAX_FRAMES, HelpFormatter, Parser, folder, frame_count, frame_rate, image_size,  # noqa: E402
+                  iterations, python_command, seconds, start_taichi, time_step, youngs_modulus)
 from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
@@ -35,7 +35,7 @@ def build_parser():
     from . import scenes
     from .export import ExportFormat
     from .interactive import MIN_SIZE, window_size
-    from .video import VideoFormat
+    from .video import GIF_MIN_DELAY, VideoFormat
 
     formatter = HelpFormatter
     parser = Parser(prog=f"{python_command()} -m demo", formatter_class=formatter,
@@ -47,7 +47,8 @@ def build_parser():
     render = sub.add_parser("render", help="render a scene headless to PNG frames (+ video, + meshes)",
                             formatter_class=formatter)
     render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
-    render.add_argument("--frames", type=positive, default=None, help="number of frames (default: the scene's own)")
+    render.add_argument("--frames", type=frame_count, default=None,
+                        help=f"number of frames, at most {MAX_FRAMES} (default: the scene's own)")
     render.add_argument("--out", type=folder, default=None,
                         help="output folder (default: out/SCENE, or out/SCENE_2, _3, ... when it holds an earlier "
                              "render and --overwrite is not given)")
@@ -58,7 +59,9 @@ def build_parser():
     render.add_argument("--dt", type=time_step, default=None, metavar="SECONDS",
                         help="time step h in s (default: the scene's own)")
     render.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="image size in pixels")
-    render.add_argument("--fps", type=positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--fps", type=frame_rate, default=None,
+                        help=f"video frame rate, at most {MAX_FPS}; a gif's at most {100 // GIF_MIN_DELAY}, rounded "
+                             "to a whole number of 1/100 s a frame (default: the scene's own)")
     render.add_argument("--duration", type=seconds, default=None, metavar="SECONDS",
                         help="video length: frames = SECONDS x fps, instead of --frames (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
@@ -158,7 +161,12 @@ def render(args):
     fps = args.fps or scene.fps
     if args.frames and args.duration:
         raise DemoError("pass --frames or --duration, not both")
-    frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
+    frames = args.frames or scene.frames
+    if args.duration:
+        frames = max(1, round(args.duration * fps))
+        if frames > MAX_FRAMES:
+            raise DemoError(f"--duration {args.duration:g} s at {fps} fps is {frames} frames, more than {MAX_FRAMES}; "
+                            "shorten --duration or lower --fps")
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
     out = args.out if args.out is not None else Path("out") / scene.name
@@ -192,7 +200,9 @@ def render(args):
     shown = "frame_0000.png" if frames == 1 else f"frame_0000.png ... frame_{frames - 1:04d}.png"
     print(f"wrote {frames} frame{'s' if frames != 1 else ''} to {out}/{shown} in {elapsed:.1f} s")
     if video_format is not VideoFormat.NONE:
-        print(f"video: {files[frames]} ({fps} fps, {width}x{height})")
+        rounded = (f"; {fps} fps asked for: a gif's frame delays are whole hundredths of a second"
+                   if writer.fps != fps else "")
+        print(f"video: {files[frames]} ({writer.fps:.3g} fps, {width}x{height}{rounded})")
     if export_format is not ExportFormat.NONE:
         print(f"meshes: {out / 'meshes'}/")
 
