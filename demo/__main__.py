@@ -26,6 +26,7 @@ from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
 # the names `render` writes (see planned_files); --overwrite removes earlier ones that this run does not replace
+# (earlier_outputs)
 FRAME_PATTERN = re.compile(r"frame_\d{4}\.png")
 MESH_PATTERN = re.compile(r"frame_\d{4}_panel\d+\.(vtu|ply|obj)")
 DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
@@ -67,7 +68,10 @@ def build_parser():
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
                         help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
-    render.add_argument("--overwrite", action="store_true", help="replace files left by an earlier run")
+    render.add_argument("--overwrite", action="store_true",
+                        help="replace the files an earlier render wrote into --out, and remove those of them this "
+                             "one does not write (surplus frames and meshes, the video in another format); other "
+                             "files are kept")
     render.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
 
     interactive = sub.add_parser("interactive", help="open the interactive window (needs Vulkan)",
@@ -122,7 +126,19 @@ def fresh_folder(out, scene, frames, video, export):
     return candidate
 
 
-def prepare_output(out, files, overwrite):
+def earlier_outputs(out, scene, files):
+    """The files in ``out`` that an earlier render of ``scene`` wrote and this one, which writes ``files``,
+    does not rewrite: surplus frames and meshes, the scene's video in the other format; nothing else."""
+    from .video import VideoFormat
+
+    planned = set(files)
+    videos = [out / f"{scene.name}.{v.value}" for v in VideoFormat if v is not VideoFormat.NONE]
+    named = [f for pattern, where in ((FRAME_PATTERN, out), (MESH_PATTERN, out / "meshes")) if where.is_dir()
+             for f in where.iterdir() if pattern.fullmatch(f.name)]
+    return [f for f in named + videos if f not in planned and f.is_file()]
+
+
+def prepare_output(out, scene, files, overwrite):
     try:
         out.mkdir(parents=True, exist_ok=True)
         if any(f.parent != out for f in files):
@@ -137,15 +153,12 @@ def prepare_output(out, files, overwrite):
         raise DemoError(f"{existing[0]}{more} already exist; pass --overwrite to replace them or --out to "
                         f"choose another folder")
     if overwrite:
-        # frames and meshes an earlier, longer render left behind would sit beside the new video
-        planned = set(files)
-        stale = [f for pattern, where in ((FRAME_PATTERN, out), (MESH_PATTERN, out / "meshes")) if where.is_dir()
-                 for f in where.iterdir() if pattern.fullmatch(f.name) and f not in planned]
+        # what an earlier render left that this one does not replace would no longer match the new frames
         try:
-            for f in stale:
+            for f in earlier_outputs(out, scene, files):
                 f.unlink()
         except OSError as e:
-            raise DemoError(f"cannot remove the earlier frame {f}: {e.strerror}") from None
+            raise DemoError(f"cannot remove the earlier render's {f}: {e.strerror}") from None
 
 
 def render(args):
@@ -175,7 +188,7 @@ def render(args):
     files = planned_files(out, scene, frames, video_format, export_format)
     writer = VideoWriter(files[frames] if video_format is not VideoFormat.NONE else None, video_format, fps,
                          (width, height))
-    prepare_output(out, files, args.overwrite)
+    prepare_output(out, scene, files, args.overwrite)
 
     started = time.perf_counter()
     start_taichi(args.arch)     # once: the runner and the renderer then use what runs

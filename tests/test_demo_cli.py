@@ -210,6 +210,28 @@ def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path,
     assert all(f.read_text() == "mine" for f in mine)
 
 
+@pytest.mark.backend
+def test_overwrite_removes_the_earlier_video_it_does_not_replace(tmp_path, capsys):
+    """--overwrite --video none left the previous run's twist.gif beside the new frames, and --video mp4 an
+    earlier gif: a video that no longer matches them. Now --overwrite removes the scene's video in a format
+    this run does not write, as it removes surplus frames and meshes; another scene's video and the user's
+    files stay."""
+    out = tmp_path / "t"
+    argv = ["render", "twist", "--frames", "2", "--size", "48x32", "--out", str(out)]
+    assert main(argv + ["--video", "gif"]) == 0
+    mine = {out / "twist.gif.bak": "mine", out / "stiffness_sweep.mp4": "another scene's", out / "notes.txt": "mine"}
+    for path, text in mine.items():
+        path.write_text(text)
+    assert main(argv + ["--video", "none", "--overwrite"]) == 0
+    assert not (out / "twist.gif").exists()
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_0001.png"]
+    assert main(argv + ["--video", "gif", "--overwrite"]) == 0
+    assert main(argv + ["--video", "mp4", "--overwrite"]) == 0
+    assert (out / "twist.mp4").exists() and not (out / "twist.gif").exists()
+    assert all(path.read_text() == text for path, text in mine.items())
+    capsys.readouterr()
+
+
 def test_empty_out_is_refused(capsys):
     one_line_error(capsys, ["render", "colouring", "--out", ""], "empty --out would write into the current folder")
 
