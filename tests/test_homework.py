@@ -356,6 +356,15 @@ def test_each_task_scores_without_the_tasks_after_it(tmp_path):
     assert chebyshev and all(t["reason"].startswith("TODO: chebyshev: ") for t in chebyshev), chebyshev
 
 
+def test_the_notes_readme_names_every_file_the_starter_cuts_outside_the_solver():
+    """lecture_notes/README.md said the starter cuts the solution regions 'of chapters 3, 4 and 6', leaving
+    out exercises/analysis.py (task 5, 15 points, measurements from chapters 3 to 6)."""
+    text = " ".join((REPO / "lecture_notes" / "README.md").read_text().split())
+    for n, task in enumerate(homework.TASKS, start=1):
+        for path in sorted({spec.split(":")[0] for spec in task.functions if not spec.startswith("solver/")}):
+            assert f"`{path}` (task {n}, {task.points} points)" in text, (task.id, path)
+
+
 def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     out = tmp_path / "hw"
     out.mkdir()
