@@ -20,12 +20,13 @@ import numpy as np  # noqa: E402
 
 import solver  # noqa: E402
 
-from .cli import (HelpFormatter, Parser, folder, image_size, iterations, positive, python_command,  # noqa: E402
-                  seconds, start_taichi, time_step, youngs_modulus)
+from .cli import (MAX_FPS, MAX_FRAMES, HelpFormatter, Parser, folder, frame_count, frame_rate, image_size,  # noqa: E402
+                  iterations, python_command, seconds, start_taichi, time_step, youngs_modulus)
 from .errors import DemoError  # noqa: E402
 
 COMMANDS = ("list", "render", "interactive", "homework", "figures")
 # the names `render` writes (see planned_files); --overwrite removes earlier ones that this run does not replace
+# (earlier_outputs)
 FRAME_PATTERN = re.compile(r"frame_\d{4}\.png")
 MESH_PATTERN = re.compile(r"frame_\d{4}_panel\d+\.(vtu|ply|obj)")
 DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
@@ -34,7 +35,8 @@ DELEGATED = {"homework": "demo.homework", "figures": "demo.figures"}
 def build_parser():
     from . import scenes
     from .export import ExportFormat
-    from .video import VideoFormat
+    from .interactive import MIN_SIZE, window_size
+    from .video import GIF_MIN_DELAY, VideoFormat
 
     formatter = HelpFormatter
     parser = Parser(prog=f"{python_command()} -m demo", formatter_class=formatter,
@@ -46,7 +48,8 @@ def build_parser():
     render = sub.add_parser("render", help="render a scene headless to PNG frames (+ video, + meshes)",
                             formatter_class=formatter)
     render.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
-    render.add_argument("--frames", type=positive, default=None, help="number of frames (default: the scene's own)")
+    render.add_argument("--frames", type=frame_count, default=None,
+                        help=f"number of frames, at most {MAX_FRAMES} (default: the scene's own)")
     render.add_argument("--out", type=folder, default=None,
                         help="output folder (default: out/SCENE, or out/SCENE_2, _3, ... when it holds an earlier "
                              "render and --overwrite is not given)")
@@ -57,20 +60,26 @@ def build_parser():
     render.add_argument("--dt", type=time_step, default=None, metavar="SECONDS",
                         help="time step h in s (default: the scene's own)")
     render.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="image size in pixels")
-    render.add_argument("--fps", type=positive, default=None, help="video frame rate (default: the scene's own)")
+    render.add_argument("--fps", type=frame_rate, default=None,
+                        help=f"video frame rate, at most {MAX_FPS}; a gif's at most {100 // GIF_MIN_DELAY}, rounded "
+                             "to a whole number of 1/100 s a frame (default: the scene's own)")
     render.add_argument("--duration", type=seconds, default=None, metavar="SECONDS",
                         help="video length: frames = SECONDS x fps, instead of --frames (default: the scene's own)")
     render.add_argument("--video", choices=[v.value for v in VideoFormat], default="mp4", help="video file to make")
     render.add_argument("--export", choices=[e.value for e in ExportFormat], default="none",
                         help="also write each frame's mesh (vtu: tets; ply/obj: surface)")
-    render.add_argument("--overwrite", action="store_true", help="replace files left by an earlier run")
+    render.add_argument("--overwrite", action="store_true",
+                        help="replace the files an earlier render wrote into --out, and remove those of them this "
+                             "one does not write (surplus frames and meshes, the video in another format); other "
+                             "files are kept")
     render.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
 
     interactive = sub.add_parser("interactive", help="open the interactive window (needs Vulkan)",
                                  formatter_class=formatter)
     interactive.add_argument("scene", nargs="?", default=scenes.DEFAULT_SCENE, help="scene name (see `list`)")
     interactive.add_argument("--arch", choices=["cpu", "gpu"], default="cpu", help="Taichi backend")
-    interactive.add_argument("--size", type=image_size, default="1280x720", metavar="WxH", help="window size in pixels")
+    interactive.add_argument("--size", type=window_size, default="1280x720", metavar="WxH",
+                             help=f"window size in pixels, at least {MIN_SIZE[0]}x{MIN_SIZE[1]}")
 
     for command, what in (("homework", "homework tools"), ("figures", "lecture figures")):
         if available(command):     # a homework starter has no demo/figures.py: --help does not offer it
@@ -117,7 +126,19 @@ def fresh_folder(out, scene, frames, video, export):
     return candidate
 
 
-def prepare_output(out, files, overwrite):
+def earlier_outputs(out, scene, files):
+    """The files in ``out`` that an earlier render of ``scene`` wrote and this one, which writes ``files``,
+    does not rewrite: surplus frames and meshes, the scene's video in the other format; nothing else."""
+    from .video import VideoFormat
+
+    planned = set(files)
+    videos = [out / f"{scene.name}.{v.value}" for v in VideoFormat if v is not VideoFormat.NONE]
+    named = [f for pattern, where in ((FRAME_PATTERN, out), (MESH_PATTERN, out / "meshes")) if where.is_dir()
+             for f in where.iterdir() if pattern.fullmatch(f.name)]
+    return [f for f in named + videos if f not in planned and f.is_file()]
+
+
+def prepare_output(out, scene, files, overwrite):
     try:
         out.mkdir(parents=True, exist_ok=True)
         if any(f.parent != out for f in files):
@@ -132,15 +153,12 @@ def prepare_output(out, files, overwrite):
         raise DemoError(f"{existing[0]}{more} already exist; pass --overwrite to replace them or --out to "
                         f"choose another folder")
     if overwrite:
-        # frames and meshes an earlier, longer render left behind would sit beside the new video
-        planned = set(files)
-        stale = [f for pattern, where in ((FRAME_PATTERN, out), (MESH_PATTERN, out / "meshes")) if where.is_dir()
-                 for f in where.iterdir() if pattern.fullmatch(f.name) and f not in planned]
+        # what an earlier render left that this one does not replace would no longer match the new frames
         try:
-            for f in stale:
+            for f in earlier_outputs(out, scene, files):
                 f.unlink()
         except OSError as e:
-            raise DemoError(f"cannot remove the earlier frame {f}: {e.strerror}") from None
+            raise DemoError(f"cannot remove the earlier render's {f}: {e.strerror}") from None
 
 
 def render(args):
@@ -156,7 +174,12 @@ def render(args):
     fps = args.fps or scene.fps
     if args.frames and args.duration:
         raise DemoError("pass --frames or --duration, not both")
-    frames = args.frames or (max(1, round(args.duration * fps)) if args.duration else scene.frames)
+    frames = args.frames or scene.frames
+    if args.duration:
+        frames = max(1, round(args.duration * fps))
+        if frames > MAX_FRAMES:
+            raise DemoError(f"--duration {args.duration:g} s at {fps} fps is {frames} frames, more than {MAX_FRAMES}; "
+                            "shorten --duration or lower --fps")
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
     out = args.out if args.out is not None else Path("out") / scene.name
@@ -165,7 +188,7 @@ def render(args):
     files = planned_files(out, scene, frames, video_format, export_format)
     writer = VideoWriter(files[frames] if video_format is not VideoFormat.NONE else None, video_format, fps,
                          (width, height))
-    prepare_output(out, files, args.overwrite)
+    prepare_output(out, scene, files, args.overwrite)
 
     started = time.perf_counter()
     start_taichi(args.arch)     # once: the runner and the renderer then use what runs
@@ -190,7 +213,9 @@ def render(args):
     shown = "frame_0000.png" if frames == 1 else f"frame_0000.png ... frame_{frames - 1:04d}.png"
     print(f"wrote {frames} frame{'s' if frames != 1 else ''} to {out}/{shown} in {elapsed:.1f} s")
     if video_format is not VideoFormat.NONE:
-        print(f"video: {files[frames]} ({fps} fps, {width}x{height})")
+        rounded = (f"; {fps} fps asked for: a gif's frame delays are whole hundredths of a second"
+                   if writer.fps != fps else "")
+        print(f"video: {files[frames]} ({writer.fps:.3g} fps, {width}x{height}{rounded})")
     if export_format is not ExportFormat.NONE:
         print(f"meshes: {out / 'meshes'}/")
 

@@ -59,6 +59,27 @@ def positive(text):
     return value
 
 
+MAX_FPS = 240
+MAX_FRAMES = 10000      # the frames are numbered frame_0000.png ... frame_9999.png
+
+
+def frame_rate(text):
+    """Frames per second, a whole number from 1 to MAX_FPS."""
+    value = positive(text)
+    if value > MAX_FPS:
+        raise argparse.ArgumentTypeError(f"{value} fps is more than {MAX_FPS}; pick a lower rate")
+    return value
+
+
+def frame_count(text):
+    """A number of frames, 1 to MAX_FRAMES."""
+    value = positive(text)
+    if value > MAX_FRAMES:
+        raise argparse.ArgumentTypeError(f"{value} frames is more than {MAX_FRAMES} (frame_0000.png to "
+                                         f"frame_{MAX_FRAMES - 1:04d}.png); render fewer")
+    return value
+
+
 def seconds(text):
     """A duration in seconds, more than 0 and at most an hour."""
     try:

@@ -11,6 +11,8 @@ MUTED = (70, 74, 84)
 ERROR_TEXT = (180, 40, 30)
 LABEL_BACKGROUND = (244, 245, 248)
 LINE_SPACING = 1.3      # rows of text are this many font sizes apart
+# the frame size the scenes' cameras are chosen for: a panel narrower than there is fitted by its width
+DEFAULT_SIZE = (1280, 720)
 
 
 def layout(n_panels, width, height, top):
@@ -32,15 +34,18 @@ def label_rows(scene):
     return rows + 1
 
 
-class FrameComposer:
-    """Renders a scene's panel states into finished frames (PIL images) of a fixed size."""
+class FrameLayout:
+    """Where the parts of a scene's frame of ``width`` x ``height`` pixels go: the title band on top (the
+    title and the notes, wrapped to the width, at most half the height), each panel's label band below
+    it and the panel's viewport for the bodies below that."""
 
-    def __init__(self, scene, width, height, arch="cpu"):
+    def __init__(self, scene, width, height):
         self.scene = scene
         self.width, self.height = width, height
-        self.renderer = Renderer(width, height, arch=arch)
         self.font_size = max(9, height // 40)
-        self.title_band = int(self.font_size * 1.6 + (self.font_size * 1.3) * len(scene.notes)) + 4
+        self.font = ImageFont.load_default(size=self.font_size)
+        self.title_font = ImageFont.load_default(size=int(self.font_size * 1.2))
+        self.title_rows, self.title_band = self._title_rows()
         # at most half of what the title leaves: a tiny image keeps room for the bodies, with fewer rows
         room = max(0, (height - self.title_band) // 2)
         self.rows = max(0, min(label_rows(scene), int((room / self.font_size - 0.5) / LINE_SPACING)))
@@ -48,22 +53,88 @@ class FrameComposer:
         self.label_band = int(self.font_size * (0.5 + LINE_SPACING * self.rows))
         self.panels = layout(len(scene.panels), width, height, self.title_band)
         self.viewports = layout(len(scene.panels), width, height, self.title_band + self.label_band)
-        self.font = ImageFont.load_default(size=self.font_size)
-        self.title_font = ImageFont.load_default(size=int(self.font_size * 1.2))
+
+    def _title_rows(self):
+        """([(text, font, colour, (x, y))] of the title band, its height): the title's and then the notes'
+        pieces, as many as fit in half the height, the last one then ending in " ..."."""
+        s = self.font_size
+        width = self.width - s
+        pieces = ([(piece, self.title_font, TEXT) for piece in self.fit(self.scene.title, width, self.title_font)]
+                  + [(piece, self.font, MUTED) for note in self.scene.notes for piece in self.fit(note, width)])
+        n_title = sum(font is self.title_font for _, font, _ in pieces)
+        title_pitch = self.title_font.size * LINE_SPACING
+
+        def at(row):        # the top of row `row`; at(number of rows) is where the band's text ends
+            if row < n_title:
+                return s // 4 + int(title_pitch * row)
+            return int(s * 1.6 + title_pitch * (n_title - 1) + s * 1.3 * (row - n_title))
+
+        kept = len(pieces)
+        while kept and at(kept) + 4 > self.height // 2:
+            kept -= 1
+        rows = [(text, font, rgb, (s // 2, at(row))) for row, (text, font, rgb) in enumerate(pieces[:kept])]
+        if rows and kept < len(pieces):
+            text, font, rgb, xy = rows[-1]
+            rows[-1] = (self.shortened(text, width, font), font, rgb, xy)
+        return rows, (at(kept) + 4 if kept else 0)
+
+    def fit(self, line, width, font=None):
+        """`line` broken at spaces into pieces at most `width` pixels wide in `font` (default: the label
+        font), continuations indented, so that a label stays inside its panel; a word wider than that is
+        broken where it reaches the width, and a line gets no pieces where not one letter fits."""
+        font = font or self.font
+        pieces, current = [], ""
+        for word in line.split(" "):
+            trial = f"{current} {word}" if current.strip() else f"{current}{word}"
+            if current.strip() and font.getlength(trial) > width:
+                pieces.append(current)
+                current = "  " + word
+            else:
+                current = trial
+        pieces.append(current)
+        broken = []
+        for piece in pieces:
+            while font.getlength(piece) > width:
+                n = max((k for k in range(len(piece) + 1) if font.getlength(piece[:k]) <= width), default=0)
+                if not piece[:n].strip():
+                    return []
+                broken.append(piece[:n])
+                piece = "  " + piece[n:]
+            broken.append(piece)
+        return broken
+
+    @staticmethod
+    def shortened(text, width, font):
+        """`text` cut short to end in " ..." within `width` pixels ("" where not even a letter fits)."""
+        while text.strip() and font.getlength(text + " ...") > width:
+            text = text[:-1].rstrip()
+        return text + " ..." if text.strip() else ""
+
+
+class FrameComposer(FrameLayout):
+    """Renders a scene's panel states into finished frames (PIL images) of a fixed size."""
+
+    def __init__(self, scene, width, height, arch="cpu"):
+        super().__init__(scene, width, height)
+        self.renderer = Renderer(width, height, arch=arch)
+        # a panel narrower than at the default size shows what it showed there: the cameras are chosen for it
+        self.framed = [(vp.width, vp.height) for vp in FrameLayout(scene, *DEFAULT_SIZE).viewports]
         self.label_boxes = []       # (x0, y0, x1, y1) pixel box of every label piece of the last frame
+        self.text_boxes = []        # the same of every piece of text of the last frame: title, notes, labels, legend
 
     def compose(self, states):
         nearest = self.scene.color_by is ColorBy.COLOR_SETS
-        for state, viewport in zip(states, self.viewports):
+        for state, viewport, framed in zip(states, self.viewports, self.framed):
             body = Body(state.positions, state.faces, state.rgb, state.ghost, nearest_vertex=nearest)
-            self.renderer.draw(body, self.scene.camera, viewport, self.scene.grid)
+            self.renderer.draw(body, self.scene.camera, viewport, self.scene.grid, framed)
         image = Image.fromarray(self.renderer.image())
         draw = ImageDraw.Draw(image)
-        draw.rectangle([0, 0, self.width, self.title_band - 1], fill=(250, 250, 252))
+        self.text_boxes = []
+        if self.title_band:
+            draw.rectangle([0, 0, self.width, self.title_band - 1], fill=(250, 250, 252))
+        for text, font, rgb, at in self.title_rows:
+            self._text(draw, at, text, font, rgb)
         s = self.font_size
-        draw.text((s // 2, s // 4), self.scene.title, font=self.title_font, fill=TEXT)
-        for i, note in enumerate(self.scene.notes):
-            draw.text((s // 2, int(s * 1.6 + s * 1.3 * i)), note, font=self.font, fill=MUTED)
         self.label_boxes = []
         for state, box in zip(states, self.panels):
             draw.rectangle([box.x, box.y, box.x + box.width - 1, box.y + self.label_band - 1], fill=LABEL_BACKGROUND)
@@ -74,30 +145,24 @@ class FrameComposer:
             if len(pieces) > self.rows:     # never into the bodies' part of the panel
                 pieces = pieces[:self.rows]
                 if pieces:
-                    pieces[-1] = (pieces[-1][0] + " ...", pieces[-1][1])
+                    pieces[-1] = (self.shortened(pieces[-1][0], box.width - s, self.font), pieces[-1][1])
             for row, (piece, rgb) in enumerate(pieces):
                 at = (box.x + s // 2, box.y + s // 4 + int(LINE_SPACING * s * row))
-                draw.text(at, piece, font=self.font, fill=rgb)
-                self.label_boxes.append(draw.textbbox(at, piece, font=self.font))
+                self.label_boxes.append(self._text(draw, at, piece, self.font, rgb))
         if self.scene.color_by in (ColorBy.DISPLACEMENT, ColorBy.RESIDUAL):
             self._scalar_legend(image, draw)
         return image
 
-    def fit(self, line, width):
-        """`line` broken at spaces into pieces at most `width` pixels wide (continuations indented), so
-        that a label stays inside its panel."""
-        pieces, current = [], ""
-        for word in line.split(" "):
-            trial = f"{current} {word}" if current.strip() else f"{current}{word}"
-            if current.strip() and self.font.getlength(trial) > width:
-                pieces.append(current)
-                current = "  " + word
-            else:
-                current = trial
-        return pieces + [current]
+    def _text(self, draw, at, text, font, rgb):
+        """Draw `text` with its top left at `at`; returns (and records) its pixel box."""
+        draw.text(at, text, font=font, fill=rgb)
+        box = draw.textbbox(at, text, font=font)
+        self.text_boxes.append(box)
+        return box
 
     def _scalar_legend(self, image, draw):
-        """A vertical colour bar in the lower right corner with its range and unit."""
+        """A vertical colour bar in the lower right corner with its range and unit, where it fits into the
+        last panel's viewport."""
         vp = self.viewports[-1]
         s = self.font_size
         bar_h = vp.height // 3
@@ -105,13 +170,18 @@ class FrameComposer:
         x0 = x1 - s
         y1 = vp.y + vp.height - 2 * s
         y0 = y1 - bar_h
-        ramp = colors.sequential(np.linspace(1.0, 0.0, max(y1 - y0, 1)))
-        bar = np.repeat((ramp * 255).round().astype(np.uint8)[:, None, :], x1 - x0, axis=1)
-        image.paste(Image.fromarray(bar), (x0, y0))
-        draw.rectangle([x0, y0, x1, y1], outline=TEXT)
         lo, hi = self.scene.color_range
         unit = "m" if self.scene.color_by is ColorBy.DISPLACEMENT else "N"
         name = "moved" if self.scene.color_by is ColorBy.DISPLACEMENT else "residual"
-        draw.text((x0 - s * 5, y0 - int(1.4 * s)), f"{name} ({unit}, log)", font=self.font, fill=TEXT)
-        draw.text((x0 - int(4.2 * s), y0), f"{hi:.0e}", font=self.font, fill=TEXT)
-        draw.text((x0 - int(4.2 * s), y1 - s), f"{lo:.0e}", font=self.font, fill=TEXT)
+        texts = [((x0 - s * 5, y0 - int(1.4 * s)), f"{name} ({unit}, log)"), ((x0 - int(4.2 * s), y0), f"{hi:.0e}"),
+                 ((x0 - int(4.2 * s), y1 - s), f"{lo:.0e}")]
+        boxes = [draw.textbbox(at, text, font=self.font) for at, text in texts]
+        if y0 >= y1 or not all(vp.x <= b[0] and vp.y <= b[1] and b[2] <= vp.x + vp.width and b[3] <= vp.y + vp.height
+                               for b in boxes):
+            return
+        ramp = colors.sequential(np.linspace(1.0, 0.0, y1 - y0))
+        bar = np.repeat((ramp * 255).round().astype(np.uint8)[:, None, :], x1 - x0, axis=1)
+        image.paste(Image.fromarray(bar), (x0, y0))
+        draw.rectangle([x0, y0, x1, y1], outline=TEXT)
+        for at, text in texts:
+            self._text(draw, at, text, self.font, TEXT)

@@ -404,13 +404,21 @@ def _check_output(out: Path, root: Path, overwrite: bool):
         raise _error(f"refusing to write the starter into {out}: it contains the project itself")
     if out.exists() and not out.is_dir():
         raise _error(f"{out} exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise _error(f"{out} is not empty; pass --overwrite to replace it or --out to choose another folder")
-        if (out / STARTER_MARKER).exists():
-            shutil.rmtree(out)     # an earlier starter: start clean so no stale file survives
-        # otherwise files are replaced one by one and nothing else in the folder is touched
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise _error(f"{out} is not empty; pass --overwrite to replace the starter's files in it (files you added "
+                     "are kept) or --out to choose another folder")
     return out
+
+
+def _earlier_files(out: Path) -> set:
+    """The files (relative to `out`) that an earlier starter in `out` wrote, as its marker lists them: none
+    where there is no marker, it cannot be read or it is from a generator that kept no list."""
+    try:
+        listed = json.loads((out / STARTER_MARKER).read_text(encoding="utf-8")).get("files", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    return {Path(name) for name in listed if isinstance(name, str) and not Path(name).is_absolute()
+            and ".." not in Path(name).parts}
 
 
 def _student_readme(root: Path, regions) -> str:
@@ -487,6 +495,13 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
     if missing:
         raise _error(f"no solution region for task(s) {', '.join(missing)} under {root}; "
                      "is this already a starter copy?")
+    earlier = _earlier_files(out)
+    written = {Path(STARTER_MARKER)}     # every file this starter consists of, relative to `out`
+
+    def copy(source, target):
+        written.add(Path(target).relative_to(out))
+        return shutil.copy2(source, target)
+
     try:
         out.mkdir(parents=True, exist_ok=True)
         for rel in files:
@@ -504,21 +519,31 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
                 target.write_text(text, encoding="utf-8")
             else:
                 shutil.copyfile(root / rel, target)
+            written.add(rel)
         if not (root / "pytest.ini").exists():
             (out / "pytest.ini").write_text("[pytest]\ntestpaths = grading\n", encoding="utf-8")
+            written.add(Path("pytest.ini"))
         grading = root / GRADING_SOURCE
-        shutil.copytree(grading, out / "grading", dirs_exist_ok=True,
+        shutil.copytree(grading, out / "grading", dirs_exist_ok=True, copy_function=copy,
                         ignore=shutil.ignore_patterns("__pycache__", "*.pyc", ".pytest_cache"))
         write_references(out / "grading" / REFERENCE_FILE, root)
-        _refresh_starter_notes(out)
+        written.add(Path("grading") / REFERENCE_FILE)
+        _refresh_starter_notes(out, [out / rel for rel in sorted(written)
+                                     if rel.parent == Path("lecture_notes") and rel.suffix == ".md"])
         if (root / "README.md").exists():
             shutil.copyfile(root / "README.md", out / "PROJECT_README.md")
             _drop_missing_pictures(out / "PROJECT_README.md")
+            written.add(Path("PROJECT_README.md"))
         (out / "README.md").write_text(_student_readme(root, regions), encoding="utf-8")
+        written.add(Path("README.md"))
         (out / STARTER_MARKER).write_text(json.dumps(
             {"tasks": [t.id for t in TASKS],
-             "regions": [{"file": r.path.as_posix(), "function": r.function, "task": r.task.id} for r in regions]},
+             "regions": [{"file": r.path.as_posix(), "function": r.function, "task": r.task.id} for r in regions],
+             "files": sorted(rel.as_posix() for rel in written)},
             indent=2) + "\n", encoding="utf-8")
+        for rel in sorted(earlier - written):     # an earlier starter's files that this one no longer has
+            if (out / rel).is_file():
+                (out / rel).unlink()
     except OSError as e:
         raise _error(f"cannot write the starter into {out}: {e.strerror or e}") from None
     if not quiet:
@@ -531,10 +556,10 @@ def generate(out: Path, overwrite: bool = False, root: Path = REPO_ROOT, quiet: 
 IMAGE = re.compile(r"!\[(?P<alt>[^\]]*)\]\((?P<target>[^)\s]+)\)")
 
 
-def _refresh_starter_notes(out: Path):
-    """Re-quote the code excerpts of the starter's lecture notes from the starter's own sources, so
-    that the notes show the TODOs and no solution code; an excerpt of a file or a picture the starter
-    leaves out becomes a line saying so."""
+def _refresh_starter_notes(out: Path, paths):
+    """Re-quote the code excerpts of the starter's lecture notes (`paths`, the .md files it wrote into
+    lecture_notes/) from the starter's own sources, so that the notes show the TODOs and no solution code;
+    an excerpt of a file or a picture the starter leaves out becomes a line saying so."""
     from .notes_sync import EXCERPT, chapters, function_source
 
     def excerpt(match):
@@ -542,7 +567,7 @@ def _refresh_starter_notes(out: Path):
             return f"*(`{match['path']}` is not in the homework starter; see its README)*"
         return match.group(1) + function_source(out / match["path"], match["name"]) + match.group(5)
 
-    for path in sorted((out / "lecture_notes").glob("*.md")):
+    for path in paths:
         text = path.read_text(encoding="utf-8")
         if path in chapters(out / "lecture_notes"):
             text = EXCERPT.sub(excerpt, text)
@@ -902,7 +927,10 @@ def main(argv=None):
                     "`python -m demo homework grade SUBMISSION` grades students' starters for marks.")
     parser.add_argument("--out", type=Path, default=Path("out") / "homework",
                         help="folder to write the starter into")
-    parser.add_argument("--overwrite", action="store_true", help="write into a non-empty folder")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="write into a folder that is not empty: every file of the starter is replaced, the "
+                             "solver files with TODOs included (edits to them are lost), and the files an earlier "
+                             "starter there wrote that this one has no more are removed; files you added are kept")
     parser.add_argument("--list", action="store_true", help="list the tasks and their solution regions, write nothing")
     args = parser.parse_args(argv)
     if args.list:

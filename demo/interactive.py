@@ -7,6 +7,7 @@ Every panel keeps its own settings (``runner.PanelSettings``): the sliders chang
 under "edit" (or every panel, each keeping its other settings), always through ``PanelSim.apply``,
 and each panel's line along the bottom names its current settings once they differ from the scene's.
 """
+import argparse
 import dataclasses
 import math
 import os
@@ -19,7 +20,7 @@ import numpy as np
 from solver._ti import ti
 
 from . import scenes
-from .cli import python_command, start_taichi
+from .cli import image_size, python_command, start_taichi
 from .errors import DemoError
 from .render import GHOST_RGB
 from .runner import GhostMode, SceneRunner
@@ -33,6 +34,11 @@ CONTROLS_WIDTH = 0.3        # of the window width
 CHAR_WIDTH = 8.6            # pixels per character of GGUI's built-in font
 LINE_HEIGHT = 18            # pixels per line of text
 TITLE_HEIGHT = 50           # pixels of a sub-window's title bar and margins
+STATUS_BAND = 0.5           # the most of the window height the status band along the bottom takes
+MIN_STATUS_CHARS = 30       # the status band wraps the panel lines to no fewer characters than this
+# the smallest window (width, height) whose status band shows its title, the help line and one panel line
+# of MIN_STATUS_CHARS characters
+MIN_SIZE = (math.ceil((MIN_STATUS_CHARS + 2) * CHAR_WIDTH), math.ceil((TITLE_HEIGHT + 2 * LINE_HEIGHT) / STATUS_BAND))
 OPAQUE = 1.0                # alpha of the per-vertex colours (GGUI takes RGBA)
 
 
@@ -54,6 +60,8 @@ class InteractiveApp:
     """One window showing one scene's panels side by side in 3D, with controls."""
 
     def __init__(self, scene_name=scenes.DEFAULT_SCENE, arch="cpu", size=(1280, 720), show_window=True):
+        if problem := too_small(size):
+            raise DemoError(problem)
         if not hasattr(ti, "ui"):
             raise DemoError(f"the interactive window needs Taichi's GGUI, which {ti.__name__} lacks; "
                             "pip install taichi==1.7.4 (CPython 3.10-3.13). Headless rendering still works: "
@@ -258,8 +266,8 @@ class InteractiveApp:
         gui = self.window.get_gui()
         window_width, window_height = self.window.get_window_shape()
         status = [f"scene {self.scene.name} | {HELP}"] + [line for i in range(len(self.panels))
-                           for line in self.panel_lines(i, int(window_width / CHAR_WIDTH) - 2)]
-        band = min(0.5, (LINE_HEIGHT * len(status) + TITLE_HEIGHT) / window_height)
+                           for line in self.panel_lines(i, status_width(window_width))]
+        band = min(STATUS_BAND, (LINE_HEIGHT * len(status) + TITLE_HEIGHT) / window_height)
         with gui.sub_window("help and panels", 0.0, 1.0 - band, 1.0, band) as w:
             for line in status:
                 w.text(line)
@@ -365,6 +373,28 @@ class InteractiveApp:
         if not self.show_window and getattr(self, "_last_image", None) is not None:
             return self._last_image
         return self.window.get_image_buffer_as_numpy()
+
+
+def status_width(window_width):
+    """Characters per line of the status band of a window ``window_width`` pixels wide, less a margin of two."""
+    return int(window_width / CHAR_WIDTH) - 2
+
+
+def too_small(size):
+    """Why a window of ``size`` (width, height) cannot show the status band's labels, or None when it can."""
+    width, height = size
+    if width >= MIN_SIZE[0] and height >= MIN_SIZE[1]:
+        return None
+    return (f"a {width}x{height} window is too small to show the labels: the interactive window needs at least "
+            f"{MIN_SIZE[0]}x{MIN_SIZE[1]} pixels")
+
+
+def window_size(text):
+    """The window's --size: WIDTHxHEIGHT as `cli.image_size` takes it, at least MIN_SIZE."""
+    size = image_size(text)
+    if problem := too_small(size):
+        raise argparse.ArgumentTypeError(problem)
+    return size
 
 
 def vertex_normals(x, faces):

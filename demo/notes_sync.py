@@ -327,9 +327,10 @@ def record_section(out: Path, name: str, before: dict, size, full: bool, root: P
 
 
 def stale_figures(sections, out: Path = FIGURES, notes: Path = NOTES, size=(960, 420), full: bool = False,
-                  root: Path = REPO_ROOT) -> list:
+                  root: Path = REPO_ROOT, links: bool = True) -> list:
     """Figures of the named `sections` that no longer match what `python -m demo figures` would draw
-    now, and figures shown in the notes that no section draws: one line each."""
+    now and, with `links` (`sections` being all of them), figures shown in the notes that are missing or
+    that no section draws: one line each."""
     path = out / MANIFEST
     if not path.exists():
         return [f"no {MANIFEST} in {out.name}/: the figures' origin is unknown; run python -m demo figures"]
@@ -349,7 +350,7 @@ def stale_figures(sections, out: Path = FIGURES, notes: Path = NOTES, size=(960,
             if not (out / figure).exists() or _file_hash(out / figure) != digest:
                 problems.append(f"{figure} is not the picture section {name} drew; "
                                 f"run python -m demo figures --only {name}")
-    for link in figure_links(notes):
+    for link in figure_links(notes) if links else ():
         if not (notes / link).exists():
             problems.append(f"missing figure {link}; run python -m demo figures")
         elif (notes / link).parent.resolve() == out.resolve() and Path(link).name not in drawn:

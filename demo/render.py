@@ -300,13 +300,14 @@ class Renderer:
         self._no_light = np.zeros(1, np.float32)
         self._no_grid = np.zeros(7, np.float32)
 
-    def draw(self, body, camera, viewport=None, grid=None):
-        """Draw ``body`` seen from ``camera`` into ``viewport`` (default: the whole image)."""
+    def draw(self, body, camera, viewport=None, grid=None, framed=None):
+        """Draw ``body`` seen from ``camera`` into ``viewport`` (default: the whole image); ``framed``: see
+        `focal_length`."""
         vp = viewport or Viewport(0, 0, self.width, self.height)
         box = (vp.x, vp.y, vp.x + vp.width, vp.y + vp.height)
         basis = camera.basis()
         eye = np.asarray(camera.eye, float)
-        focal = 0.5 * vp.height / np.tan(np.radians(camera.fov_degrees) / 2)
+        focal = self.focal_length(camera, vp, framed)
         centre = (vp.x + 0.5 * vp.width, vp.y + 0.5 * vp.height)
         faces = np.ascontiguousarray(body.faces, dtype=np.int32)
 
@@ -326,6 +327,17 @@ class Renderer:
         vertex_rgb = np.ascontiguousarray(body.rgb, dtype=np.float32)
         _shade(self._image, self._background, self._key, screen, faces, vertex_rgb, light, self._ghost_key, ghost_light,
                int(has_ghost), int(body.nearest_vertex), *box)
+
+    @staticmethod
+    def focal_length(camera, viewport, framed=None):
+        """Pixels per unit of (sideways / forward) distance from the eye: the camera's vertical field of
+        view spans the viewport's height. With ``framed``, the (width, height) of the viewport the camera
+        was chosen for, a viewport narrower than that shape is fitted by its width instead, so that it shows
+        at least all that one showed (a portrait frame keeps the bodies that fill a landscape one)."""
+        focal = 0.5 * viewport.height / np.tan(np.radians(camera.fov_degrees) / 2)
+        if framed is not None and viewport.width * framed[1] < framed[0] * viewport.height:
+            focal *= viewport.width * framed[1] / (framed[0] * viewport.height)
+        return focal
 
     def forget_background(self):
         """Drop the cached gradient + grid, so the next draw recomputes it (benchmarks use this)."""

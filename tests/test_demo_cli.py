@@ -46,6 +46,26 @@ def test_gif_and_surface_export(tmp_path):
     assert (out / "meshes" / "frame_0001_panel0.obj").stat().st_size > 0
 
 
+@pytest.mark.backend
+def test_gif_frame_delays_match_the_rate_it_reports(tmp_path, capsys):
+    """A GIF stores its frame delays in whole hundredths of a second: at --fps 60 it held 10 ms (browsers
+    play that at 10 fps) and at the default 30 fps 30 ms (33 fps), while the command said 60 and 30 fps.
+    Now the delay is the rate rounded to whole hundredths, and the rate the GIF plays at is the one printed
+    (above 50 fps a gif is refused: see test_bad_arguments_give_one_line_errors)."""
+    from PIL import Image, ImageSequence
+
+    for fps, delay_ms, shown in [(50, 20, "50 fps"), (30, 30, "33.3 fps"), (24, 40, "25 fps"), (5, 200, "5 fps")]:
+        out = tmp_path / str(fps)
+        assert main(["render", "twist", "--frames", "3", "--size", "32x32", "--video", "gif", "--fps", str(fps),
+                     "--out", str(out)]) == 0
+        printed = capsys.readouterr().out
+        assert f"twist.gif ({shown}, 32x32" in printed, printed
+        assert ("asked for" in printed) == (fps in (30, 24)), printed
+        with Image.open(out / "twist.gif") as gif:
+            durations = [frame.info["duration"] for frame in ImageSequence.Iterator(gif)]
+        assert durations == [delay_ms] * 3, (fps, durations)
+
+
 def test_existing_user_file_is_never_touched(tmp_path, capsys):
     (tmp_path / "frame_0000.png").write_bytes(b"mine")
     one_line_error(capsys, ["render", "colouring", "--frames", "1", "--out", str(tmp_path)], "--overwrite")
@@ -70,6 +90,12 @@ def test_existing_user_file_is_never_touched(tmp_path, capsys):
     (["render", "--dt", "1/0"], "outside (0, 0.1] s"),
     (["render", "--dt", "soon"], "expected a time step in s"),
     (["render", "colouring", "--dt", "0.01"], "shows the rest shape"),
+    (["render", "--fps", "241"], "241 fps is more than 240"),
+    (["render", "--fps", "100000"], "100000 fps is more than 240"),
+    (["render", "--frames", "10001"], "10001 frames is more than 10000"),
+    (["render", "--duration", "3600", "--fps", "240"], "is 864000 frames, more than 10000"),
+    (["render", "--video", "gif", "--fps", "51"], "a gif plays at most 50 fps"),
+    (["render", "--video", "gif", "--fps", "60"], "pass --fps 50 or less, or --video mp4"),
 ])
 def test_bad_arguments_give_one_line_errors(capsys, tmp_path, argv, match):
     one_line_error(capsys, argv + ["--out", str(tmp_path)] if argv[0] == "render" else argv, match)
@@ -182,6 +208,28 @@ def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path,
     assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_12.png"]
     assert sorted(p.name for p in (out / "meshes").iterdir()) == ["frame_0000_panel0.obj", "frame_0002_panel0.obj.bak"]
     assert all(f.read_text() == "mine" for f in mine)
+
+
+@pytest.mark.backend
+def test_overwrite_removes_the_earlier_video_it_does_not_replace(tmp_path, capsys):
+    """--overwrite --video none left the previous run's twist.gif beside the new frames, and --video mp4 an
+    earlier gif: a video that no longer matches them. Now --overwrite removes the scene's video in a format
+    this run does not write, as it removes surplus frames and meshes; another scene's video and the user's
+    files stay."""
+    out = tmp_path / "t"
+    argv = ["render", "twist", "--frames", "2", "--size", "48x32", "--out", str(out)]
+    assert main(argv + ["--video", "gif"]) == 0
+    mine = {out / "twist.gif.bak": "mine", out / "stiffness_sweep.mp4": "another scene's", out / "notes.txt": "mine"}
+    for path, text in mine.items():
+        path.write_text(text)
+    assert main(argv + ["--video", "none", "--overwrite"]) == 0
+    assert not (out / "twist.gif").exists()
+    assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_0001.png"]
+    assert main(argv + ["--video", "gif", "--overwrite"]) == 0
+    assert main(argv + ["--video", "mp4", "--overwrite"]) == 0
+    assert (out / "twist.mp4").exists() and not (out / "twist.gif").exists()
+    assert all(path.read_text() == text for path, text in mine.items())
+    capsys.readouterr()
 
 
 def test_empty_out_is_refused(capsys):

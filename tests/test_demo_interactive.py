@@ -149,6 +149,29 @@ def test_vertex_normals_point_out_of_a_box():
     np.testing.assert_allclose(n[corner], -np.ones(3) / np.sqrt(3), atol=0.2)
 
 
+def test_a_window_too_small_for_the_labels_is_refused(capsys):
+    """The window's --size took any image size from 16x16, and a window under 26 pixels wide ended in
+    textwrap's 'ValueError: invalid width 0': the status band wrapped the panel lines to 0 characters or
+    fewer. Now a window under MIN_SIZE is a one-line error naming it (from --size, before any window opens,
+    and from InteractiveApp), and at MIN_SIZE the panel lines wrap to MIN_STATUS_CHARS characters."""
+    from demo.__main__ import main
+    from demo.interactive import MIN_SIZE, MIN_STATUS_CHARS, InteractiveApp, _wrap, status_width, window_size
+
+    width, height = MIN_SIZE
+    for size in ("20x20", "25x720", f"{width - 1}x{height}", f"{width}x{height - 1}"):
+        assert main(["interactive", "twist", "--size", size]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"needs at least {width}x{height} pixels" in err, err
+    with pytest.raises(DemoError, match=f"needs at least {width}x{height} pixels"):
+        InteractiveApp("twist", size=(20, 20), show_window=False)
+    assert window_size(f"{width}x{height}") == (width, height)
+    assert status_width(width) == MIN_STATUS_CHARS
+    line = "panel 2: changed: E = 2.5e5 Pa, 200 it., dt = 1/120 s, Chebyshev rho 0.975, t = 12.34 s"
+    pieces = _wrap(line, status_width(width), first_indent=False)
+    assert all(0 < len(piece) <= MIN_STATUS_CHARS for piece in pieces), pieces
+    assert any("dt = 1/120 s" in piece for piece in pieces), pieces
+
+
 @pytest.mark.parametrize("display, match", [(None, "DISPLAY is not set"), (":987", "DISPLAY=:987 has no X server")])
 def test_no_display_gives_a_hint_instead_of_ending_the_process(monkeypatch, display, match):
     from demo.interactive import check_display
@@ -168,7 +191,7 @@ def test_no_display_gives_a_hint_instead_of_ending_the_process(monkeypatch, disp
 def test_window_start_compiles_without_precision_warnings(app):
     """GGUI's default normals and RGB colours compile float64 literals into float32 fields."""
     code = ("from demo.interactive import InteractiveApp\n"
-            "app = InteractiveApp('stiffness_sweep', size=(160, 90), show_window=False)\n"
+            "app = InteractiveApp('stiffness_sweep', size=(320, 180), show_window=False)\n"
             "app.set_ghost(True); app.toggle_play(); app.run(max_frames=2)\n"
             "app.set_color_by(app.color_by.__class__.RESIDUAL); app.run(max_frames=3)\n")
     run = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=300,

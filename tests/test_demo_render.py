@@ -1,4 +1,6 @@
 """The Taichi rasteriser: deterministic, and the object is where the camera says."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -99,3 +101,87 @@ def test_composed_frame_has_labels_and_is_deterministic():
     assert a.shape == (96, 160, 3)
     assert len(np.unique(a.reshape(-1, 3), axis=0)) > 20      # colour sets, text, background
     assert states[0].lines[1].endswith("vertices") and "colours" in states[0].lines[1]
+
+
+@pytest.fixture(scope="module")
+def first_states():
+    """The first frame's panel states of a scene, by name (simulated once per module)."""
+    cache = {}
+
+    def states(name):
+        if name not in cache:
+            cache[name] = SceneRunner(scenes.get(name)).advance()
+        return cache[name]
+    return states
+
+
+TEXT_SIZES = [(1280, 720), (800, 800), (640, 480), (640, 1200), (320, 180), (200, 300), (64, 48), (48, 32),
+              (16, 16)]
+
+
+@pytest.mark.parametrize("name", ["real_shapes", "stiffness_sweep", "propagation"])
+def test_every_piece_of_text_lies_inside_the_frame(first_states, name):
+    """The title and the notes were drawn unwrapped: at 800x800 real_shapes' title ended '...without kee', at
+    640x480 stiffness_sweep's ghost note ran off the right edge. Now they are wrapped to the width (each row
+    within it, as the composer measures it), and where half the height cannot hold them all the last row
+    kept ends in ' ...'; the labels stay in their panels, the colour legend (propagation) inside the frame."""
+    scene = scenes.get(name)
+    band_text = " ".join([scene.title, *scene.notes]).split()
+    for width, height in TEXT_SIZES:
+        composer = FrameComposer(scene, width, height)
+        composer.compose(first_states(name))
+        inside = lambda b: 0 <= b[0] and 0 <= b[1] and b[2] <= width and b[3] <= height
+        assert all(inside(b) for b in composer.text_boxes), (width, height)
+        assert composer.title_band <= height // 2
+        rows = [text for text, *_ in composer.title_rows]
+        title_boxes = composer.text_boxes[:len(rows)]
+        assert all(b[3] <= composer.title_band for b in title_boxes), (width, height)
+        shown = " ".join(rows).split()
+        if not rows:
+            assert composer.title_band == 0 and height < 40, (width, height)     # no room for one row
+        elif rows[-1].endswith(" ..."):
+            assert shown[:-2] == band_text[:len(shown) - 2], (width, height)
+        else:
+            assert shown == band_text, (width, height)      # nothing lost
+        for label in composer.label_boxes:
+            assert any(p.x <= label[0] and label[2] <= p.x + p.width for p in composer.panels), (width, height)
+            assert composer.title_band <= label[1] and label[3] <= composer.title_band + composer.label_band
+    big = FrameComposer(scene, 800, 800)
+    assert not big.title_rows[-1][0].endswith(" ...")        # 800x800 shows the whole title and every note
+
+
+def test_fit_breaks_lines_and_words_to_the_width():
+    composer = FrameComposer(scenes.get("twist"), 64, 48)
+    pieces = composer.fit("a Verylongunbreakableword and more", 30)
+    assert all(composer.font.getlength(p) <= 30 for p in pieces) and len(pieces) > 3
+    assert "".join(p.strip() for p in pieces) == "aVerylongunbreakablewordandmore"
+    assert composer.fit("wide", 1) == []                    # not one letter fits
+    assert composer.shortened("a line too long to fit", 40, composer.font).endswith(" ...")
+    assert composer.font.getlength(composer.shortened("a line too long to fit", 40, composer.font)) <= 40
+
+
+@pytest.mark.parametrize("name", ["real_shapes", "stiffness_sweep"])
+def test_bodies_fit_their_panels_at_any_shape(first_states, name):
+    """The focal length came from the vertical field of view alone, so a panel narrower than at the default
+    size cut the bodies off at its sides (640x1200: the bunnies' tails and the cow). Now a panel narrower
+    than its default-size shape is fitted by its width: every body projects inside its viewport, and the
+    drawn pixels (the bodies painted plain green) are where that projection says."""
+    scene = scenes.get(name)
+    green = [dataclasses.replace(s, rgb=np.tile([0.0, 1.0, 0.0], (len(s.positions), 1)), ghost=None)
+             for s in first_states(name)]
+    basis, eye = scene.camera.basis(), np.asarray(scene.camera.eye)
+    for width, height in [(1280, 720), (640, 1200), (800, 800), (160, 400), (320, 180), (1280, 300)]:
+        composer = FrameComposer(scene, width, height)
+        image = np.asarray(composer.compose(green)).astype(int)
+        body = (image[..., 1] > 50) & (image[..., 0] < 10) & (image[..., 2] < 10)
+        for state, vp, framed in zip(green, composer.viewports, composer.framed):
+            d = (state.positions - eye) @ basis.T
+            focal = Renderer.focal_length(scene.camera, vp, framed)
+            col = vp.x + 0.5 * vp.width + focal * d[:, 0] / d[:, 2]
+            row = vp.y + 0.5 * vp.height - focal * d[:, 1] / d[:, 2]
+            assert vp.x < col.min() and col.max() < vp.x + vp.width, (width, height, vp)
+            assert vp.y < row.min() and row.max() < vp.y + vp.height, (width, height, vp)
+            rows, cols = np.nonzero(body[vp.y:vp.y + vp.height, vp.x:vp.x + vp.width])
+            drawn = np.array([cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]) + [vp.x, vp.y, vp.x, vp.y]
+            projected = np.array([col.min(), row.min(), col.max(), row.max()])
+            assert np.abs(drawn - projected).max() <= 1.5, (width, height, drawn, projected)

@@ -356,6 +356,15 @@ def test_each_task_scores_without_the_tasks_after_it(tmp_path):
     assert chebyshev and all(t["reason"].startswith("TODO: chebyshev: ") for t in chebyshev), chebyshev
 
 
+def test_the_notes_readme_names_every_file_the_starter_cuts_outside_the_solver():
+    """lecture_notes/README.md said the starter cuts the solution regions 'of chapters 3, 4 and 6', leaving
+    out exercises/analysis.py (task 5, 15 points, measurements from chapters 3 to 6)."""
+    text = " ".join((REPO / "lecture_notes" / "README.md").read_text().split())
+    for n, task in enumerate(homework.TASKS, start=1):
+        for path in sorted({spec.split(":")[0] for spec in task.functions if not spec.startswith("solver/")}):
+            assert f"`{path}` (task {n}, {task.points} points)" in text, (task.id, path)
+
+
 def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     out = tmp_path / "hw"
     out.mkdir()
@@ -367,9 +376,37 @@ def test_existing_folder_is_refused_unless_overwrite(tmp_path, capsys):
     assert main(["homework", "--out", str(out), "--overwrite"]) == 0
     assert (out / "notes.txt").read_text() == "mine"          # a folder we did not write is never emptied
     assert (out / "solver" / "physics" / "material.py").exists()
-    (out / "stale.py").write_text("")
+
+
+def test_overwrite_replaces_only_what_the_generator_wrote(tmp_path, capsys):
+    """--overwrite on an earlier starter deleted the whole folder (shutil.rmtree), a student's notes and
+    everything else in it. Now it replaces the files the starter consists of (an edited task file goes back
+    to its TODO, as --help says) and removes those an earlier starter wrote, as its marker lists them, that
+    this one no longer has; a file the generator did not write is never touched."""
+    out = tmp_path / "hw"
+    homework.generate(out, quiet=True)
+    task_file = out / "solver" / "physics" / "material.py"
+    pristine = task_file.read_text()
+    task_file.write_text(pristine + "\n# my attempt\n")
+    mine = {out / "my_notes.txt": "mine", out / "lecture_notes" / "my_notes.md": "![sketch](missing.png)\n",
+            out / "grading" / "my_test.py": "mine", tmp_path / "outside.txt": "mine"}
+    for path, text in mine.items():
+        path.write_text(text)
+    marker = json.loads((out / homework.STARTER_MARKER).read_text())
+    (out / "solver" / "dropped.py").write_text("a file of an earlier starter")
+    marker.setdefault("files", []).extend(["solver/dropped.py", "../outside.txt", str(tmp_path / "outside.txt")])
+    (out / homework.STARTER_MARKER).write_text(json.dumps(marker))
     assert main(["homework", "--out", str(out), "--overwrite"]) == 0
-    assert not (out / "stale.py").exists()                    # an earlier starter is replaced cleanly
+    assert all(path.read_text() == text for path, text in mine.items())
+    assert task_file.read_text() == pristine
+    assert not (out / "solver" / "dropped.py").exists()
+    listed = json.loads((out / homework.STARTER_MARKER).read_text())["files"]
+    assert "solver/physics/material.py" in listed and "my_notes.txt" not in listed and "solver/dropped.py" not in listed
+    capsys.readouterr()
+    with pytest.raises(SystemExit):
+        main(["homework", "--help"])
+    helped = " ".join(capsys.readouterr().out.split())
+    assert "edits to them are lost" in helped and "files you added are kept" in helped, helped
 
 
 def test_refuses_to_write_into_the_project_itself(capsys):

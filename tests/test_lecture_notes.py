@@ -237,6 +237,33 @@ def test_check_command_fails_on_stale_figures(tmp_path, capsys):
     assert "section sweeps:" in capsys.readouterr().out
 
 
+def test_check_honours_only(tmp_path, capsys):
+    """--check returned before --only was read: '--only excerpts --check' reported every figure section and
+    '--only nosuch --check' no unknown section. Now --check looks at the notes and READMEs and at the
+    figures of the sections --only names (none for 'excerpts'), and an unknown section is the same error."""
+    out = tmp_path / "figures"
+    shutil.copytree(NOTES / "figures", out)
+    manifest = json.loads((out / notes_sync.MANIFEST).read_text())
+    for name, entry in manifest.items():        # every section drawn from this checkout but sweeps
+        entry["inputs"] = "0" * 64 if name == "sweeps" else notes_sync.section_inputs(name, (960, 420), False)
+    (out / notes_sync.MANIFEST).write_text(json.dumps(manifest))
+    check = ["--check", "--out", str(out), "--notes", str(NOTES)]
+    for only, code in [("excerpts", 0), ("propagation", 0), ("propagation,excerpts", 0), ("sweeps", 1), ("", 1)]:
+        assert figures.main(check + ["--only", only]) == code, only
+        printed = capsys.readouterr().out
+        assert ("section sweeps:" in printed) == (code == 1) and printed.count("section ") == code, (only, printed)
+        if only == "excerpts":
+            assert "the figures of 0 section(s)" in printed, printed
+    # the notes' pictures are checked against every section's figures only when every section is checked
+    figures.main(["--check", "--only", "propagation"])
+    printed = capsys.readouterr().out
+    assert "drawn by no section" not in printed and "section sweeps" not in printed, printed
+    assert any("drawn by no section" in line for line in notes_sync.stale_figures(["propagation"]))
+    for only in ("nosuch", "excerpts,nosuch"):
+        with pytest.raises(DemoError, match="unknown section.* nosuch; known: colouring"):
+            figures.main(check + ["--only", only])
+
+
 def test_excerpts_show_no_solution_markers():
     for path in notes_sync.chapters():
         for match in notes_sync.EXCERPT.finditer(path.read_text()):
