@@ -36,8 +36,8 @@ import warnings
 
 import numpy as np
 
-from benchmarks.common import (init_taichi, nan_as, output_folder, parser, positive, print_written, progress, provenance,
-                               table, write_csv)
+from benchmarks.common import (init_taichi, nan_as, output_folder, parser, positive, print_written, progress,
+                               provenance, table, write_csv)
 
 DTS = (1 / 1000, 1 / 240, 1 / 60, 1 / 10)
 MODULI = (1e3, 1e4, 1e6, 1e8, 1e10)

@@ -101,7 +101,8 @@ def _finite_number(name: str, value) -> float:
             number = np.inf
     if not np.isfinite(number):
         shown = repr(value)
-        raise ConfigError(f"contact {name} must be a finite number, got {shown if len(shown) <= 40 else shown[:36] + ' ...'}")
+        shown = shown if len(shown) <= 40 else shown[:36] + " ..."
+        raise ConfigError(f"contact {name} must be a finite number, got {shown}")
     return number
 
 

@@ -168,7 +168,8 @@ class ContactStage:
         (the kinematic vertices at their targets)."""
         contact_sweep.clear(self.touched)
         c = self.contact
-        contact_sweep.hold_kinematic(state, kinematic_ids, n_kinematic)
+        if n_kinematic:
+            contact_sweep.hold_kinematic(state, kinematic_ids, n_kinematic)
         if not contact_sweep.guess_within_bounds(state, color_order, self.x_det, self.x_full, self.bound,
                                                  c.bound_relaxation, c.query_radius - c.radius, self.dtype):
             self.refresh(state, X_N, lists=False)
@@ -202,8 +203,8 @@ class ContactStage:
         vertex = int(kinematic_ids.to_numpy()[int(np.argmax(short))])
         implicit_euler.return_to_start(state)
         raise ConfigError(f"kinematic vertex {vertex} would touch or pass through a body this step: "
-                          f"{short.max():.3g} m short of its target after {moves} moves within the contact bounds; use a smaller dt or a "
-                          "slower kinematic_motion")
+                          f"{short.max():.3g} m short of its target after {moves} moves within the contact bounds; "
+                          "use a smaller dt or a slower kinematic_motion")
 
     def compile_kernels(self, mass, adjacency, params, n_colors: int, sweeps: bool) -> None:
         """Compile now the kernels a run may first launch long after its first step, so that the first

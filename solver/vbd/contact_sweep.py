@@ -131,30 +131,29 @@ def contact_force_hessian_at(state: ti.template(), i, kind: ti.template(), pair:
     them (module docstring); else each block once, G's."""
     f = ti.Vector.zero(dtype, 3)
     H = ti.Matrix.zero(dtype, 3, 3)
-    kc, rr, mu_c, eps = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype), ti.cast(eps_u, dtype)
     active = 0
     for s in range(incidence_offsets[i], live_end[i] if every else near_end[i]):
         p = live_incidence[s] if every else near_incidence[s]
         v = pair[p]
-        if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), rr, 0):
+        if not may_be_within(distance, kind[p], p, ti.Vector([moved[v[j]] for j in ti.static(range(4))]), r, 0):
             continue
         d, w, n = pair_geometry(kind[p], state[X, v[0]], state[X, v[1]], state[X, v[2]], state[X, v[3]], dtype)
-        if d < rr:
+        if d < r:
             w_i = ti.cast(0, dtype)
             for j in ti.static(range(4)):
                 if v[j] == i:
                     w_i = w[j]
-            f_c, H_c = contact_force_hessian(d, w_i, n, kc, rr)
-            if mu_c > 0:
-                db, d2b = barrier_derivatives(d, kc, rr)
-                f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu_c, eps, dtype)
+            f_c, H_c = contact_force_hessian(d, w_i, n, k_c, r)
+            if mu > 0:
+                db, d2b = barrier_derivatives(d, k_c, r)
+                f_f, H_f = contact_friction(pair_slip(state, v, w, dtype), n, w_i, -db, mu, eps_u, dtype)
                 f_c += f_f
                 H_c += H_f
             if ti.static(jacobi):
                 if partner_in_pass(color, v, i):
                     H_c *= 2
-            f += f_c
-            H += H_c
+            f += ti.cast(f_c, dtype)
+            H += ti.cast(H_c, dtype)
             active += 1
     return f, H, active
 

@@ -82,7 +82,8 @@ class Simulation(SimulationState):
     (boolean (N,) mask or index array); kinematic: vertices whose positions `kinematic_motion(t, rest)`
     scripts, rest being their (K, 3) rest positions and the result their (K, 3) positions at time t;
     precision: "float64" or "float32"; arch: "cpu", "gpu" or None (the backend Taichi already runs on,
-    else the CPU; `sim.arch` then says which of "cpu" and "gpu" runs, after any fallback); coloring_order: a `VertexOrder` or its name;
+    else the CPU; `sim.arch` then says which of "cpu" and "gpu" runs, after any fallback);
+    coloring_order: a `VertexOrder` or its name;
     method: the solver of each step, a `Method` or its name: "vbd" (default), "newton" (projected
     Newton, sparse direct solve), "pcg" (Newton-PCG with VBD's colour sweep as preconditioner),
     "multilevel" (two-level VBD: cycles of 2 sweeps + coarse correction + 2 sweeps), "auto" (chosen
