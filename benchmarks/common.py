@@ -212,14 +212,25 @@ def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
         ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
 
 
+def sync():
+    """Wait until the running Taichi's kernels are done: a CUDA launch returns before its work is, so a
+    timing ends here. On the CPU (or before ``ti.init``) it returns at once."""
+    from solver._ti import running_config, ti
+
+    if running_config() is not None:
+        ti.sync()
+
+
 def seconds_per_call(run, min_seconds=0.1, repeats=3):
     """Median wall time of one call of run(1), from `repeats` timings of run(k) lasting
-    >= min_seconds / repeats each (k grows by 4x until they do); returns (seconds, k * repeats)."""
+    >= min_seconds / repeats each (k grows by 4x until they do; each waits for the kernels to finish);
+    returns (seconds, k * repeats)."""
     run(1)
     k = 1
     while True:
         start = time.perf_counter()
         run(k)
+        sync()
         t = time.perf_counter() - start
         if t >= min_seconds / repeats or k >= 1 << 16:
             break
@@ -228,6 +239,7 @@ def seconds_per_call(run, min_seconds=0.1, repeats=3):
     for _ in range(repeats - 1):
         start = time.perf_counter()
         run(k)
+        sync()
         samples.append((time.perf_counter() - start) / k)
     return float(np.median(samples)), k * repeats
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import (init_taichi, output_folder, parser, positive, print_written, progress, provenance,
-                               seconds_per_call, table, write_csv)
+                               seconds_per_call, sync, table, write_csv)
 
 OUTPUTS = ("contact.csv", "contact.png", "summary.md")
 COLUMNS = ["measurement", "bodies", "tets", "contacts", "mean_speed", "detections_per_step", "refreshes_per_step",
@@ -93,6 +93,7 @@ def _steps_in_turn(sims, steps):
         for j, sim in enumerate(sims):
             t = time.perf_counter()
             sim.step()
+            sync()
             row[j] = time.perf_counter() - t
     per_sim = [(float(np.median(samples[:, j])), (stage.detections - d) / steps, (stage.refreshes - r) / steps)
                for j, (stage, (d, r)) in enumerate(zip(stages, counters))]

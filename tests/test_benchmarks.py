@@ -82,6 +82,38 @@ def test_throughput_quick(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.backend
+def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, arch):
+    """benchmarks.cuda's scenes on this run's backend (the CPU in the default run: the same code), every
+    measurement written and sane; the pile falls into its box and never crosses."""
+    assert _module("cuda").main(["--quick", "--arch", arch, "--no-progress", "--out", str(tmp_path)]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == f"wrote cuda.csv, summary.md into {tmp_path}"
+    data = rows(tmp_path / "cuda.csv")
+    assert {r["arch"] for r in data} == {arch}
+    sweeps = [r for r in data if r["measurement"] == "sweep"]
+    assert [(r["precision"], int(r["tets"])) for r in sweeps] == [("float64", 144), ("float64", 1152),
+                                                                  ("float32", 144), ("float32", 1152)]
+    assert all(float(r["ns_per_tet_iter"]) > 0 and float(r["first_iteration_s"]) > 0 for r in sweeps)
+    (apart,) = [r for r in data if r["measurement"].startswith("apart")]
+    assert int(apart["contacts"]) == 0 and float(apart["contact_per_none"]) > 0
+    (touching,) = [r for r in data if r["measurement"].startswith("touching")]
+    assert int(touching["contacts"]) > 0 and float(touching["detect_per_sweep"]) > 0
+    (pile,) = [r for r in data if r["measurement"] == "falling pile"]
+    assert int(pile["bodies"]) == 8 and int(pile["contacts"]) > 0, "the bottom layer rests on the box"
+    assert 0 < float(pile["min_separation_mm"]) < 5, "closer than the 5 mm radius, never touching"
+    assert float(pile["step_ms"]) > 0 and float(pile["detections_per_step"]) >= 0
+    assert "| falling pile |" in (tmp_path / "summary.md").read_text()
+
+
+def test_cuda_without_a_gpu_says_so_in_one_line(capsys, cuda_present, tmp_path):
+    if cuda_present:
+        pytest.skip("this machine has a CUDA GPU")
+    _exits_with_one_line(capsys, lambda: _module("cuda").main(["--quick", "--out", str(tmp_path / "out")]),
+                         "no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
+    assert not (tmp_path / "out").exists(), "nothing is made before the refusal"
+
+
+@pytest.mark.slow
 def test_stability_quick(tmp_path):
     run_quick("stability", tmp_path)
     data = rows(tmp_path / "stability.csv")
@@ -374,6 +406,12 @@ BAD_VALUES = [
     ("render_speed", ["--size", "10"], "WIDTHxHEIGHT"),
     ("render_speed", ["--cells", "1,2"], "three positive whole numbers"),
     ("render_speed", ["--arch", "tpu"], "--arch: invalid choice: 'tpu'"),
+    ("cuda", ["--arch", "metal"], "--arch: invalid choice: 'metal'"),
+    ("cuda", ["--max-tets", "0"], "--max-tets: expected a positive whole number"),
+    ("cuda", ["--pile", "1.5"], "--pile: expected a positive whole number"),
+    ("cuda", ["--steps", "-1"], "--steps: expected a positive whole number"),
+    ("cuda", ["--cells", "x"], "--cells: expected a positive whole number"),
+    ("cuda", ["--min-seconds", "inf"], "--min-seconds: expected a positive number"),
 ]
 
 
@@ -537,7 +575,7 @@ def test_throughput_fits_no_exponent_above_10k_tets_without_two_such_meshes():
     assert [f["exponent_10k_up"] for f in scaling_fits(measured([144, 12_000, 48_000]), [1])] == pytest.approx([1, 1])
 
 
-@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps", "cuda"))
 def test_the_readme_says_what_each_benchmark_writes(name):
     module = _module(name)
     files = getattr(module, "OUTPUTS", None) or module.FILES

@@ -40,7 +40,6 @@ was at x_n or earlier (it measures every pair that may be a vertex's closest), a
 depend on the lower bounds it keeps for the others.
 """
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._ti import ti
 from ..backend import running_on_cpu
@@ -342,38 +341,84 @@ class ContactStage:
                               "the other); move it out before simulating")
 
 
+PAIR_CHUNK = 1 << 20        # `overlapping_boxes`: candidate pairs handled at a time (bounds the memory)
+
+
+def overlapping_boxes(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray):
+    """Yield, in chunks, the index pairs (i, j) (two (P,) int64 arrays) of boxes [lo_a[i], hi_a[i]] and
+    [lo_b[j], hi_b[j]] (each (N, 3)) that overlap, every such pair exactly once, chunks in increasing
+    i * len(lo_b) + j. A uniform grid whose cell is twice the median box size (at least 1/256 of the
+    scene's extent, so that a few large boxes cannot fill millions of cells): each box is entered into
+    the cells it covers, pairs sharing a cell are candidates, and their boxes are compared exactly."""
+    lower, upper = np.minimum(lo_a.min(0), lo_b.min(0)), np.maximum(hi_a.max(0), hi_b.max(0))
+    size = np.concatenate([hi_a - lo_a, hi_b - lo_b]).max(axis=1)
+    cell = max(2 * float(np.median(size)), float((upper - lower).max()) / 256, 1e-300)
+    dims = np.floor((upper - lower) / cell).astype(np.int64) + 1
+
+    def entries(lo, hi):
+        """(cell key, box index) of every cell each box covers, sorted by key."""
+        c0 = np.floor((lo - lower) / cell).astype(np.int64)
+        extent = np.floor((hi - lower) / cell).astype(np.int64) - c0 + 1
+        counts = extent.prod(axis=1)
+        box = np.repeat(np.arange(len(lo)), counts)
+        k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        ny, nz = extent[box, 1], extent[box, 2]
+        c = c0[box] + np.stack([k // (ny * nz), (k // nz) % ny, k % nz], axis=1)
+        key = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
+        order = np.argsort(key, kind="stable")
+        return key[order], box[order]
+
+    key_a, box_a = entries(lo_a, hi_a)
+    key_b, box_b = entries(lo_b, hi_b)
+    first, last = np.searchsorted(key_b, key_a, "left"), np.searchsorted(key_b, key_a, "right")
+    counts = last - first
+    ends = np.cumsum(counts)
+    found = []
+    start = 0
+    while start < len(key_a):
+        stop = max(int(np.searchsorted(ends, ends[start] - counts[start] + PAIR_CHUNK, "right")), start + 1)
+        n = counts[start:stop]
+        i = np.repeat(box_a[start:stop], n)
+        j = box_b[np.repeat(first[start:stop], n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
+        overlap = ((lo_a[i] <= hi_b[j]) & (lo_b[j] <= hi_a[i])).all(axis=1)
+        found.append(np.unique(i[overlap] * len(lo_b) + j[overlap]))
+        start = stop
+    pairs = np.unique(np.concatenate(found + [np.zeros(0, np.int64)]))
+    for chunk in range(0, len(pairs), PAIR_CHUNK):
+        part = pairs[chunk:chunk + PAIR_CHUNK]
+        yield part // len(lo_b), part % len(lo_b)
+
+
 def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray, self_contact: bool):
     """(body a, body b) of the first surface edge that passes through a surface triangle sharing none of
     its vertices (of another body, or of its own with self_contact; not both fixed or kinematic, as the
-    pairs), else None; x (N, 3), free (N,) bool. Decided by signed volumes: the edge's ends lie strictly
+    pairs), else None; x (N, 3), free (N,) bool. Candidates are the edges and triangles whose boxes
+    overlap (`overlapping_boxes`); a crossing is decided by signed volumes: the edge's ends lie strictly
     (beyond COPLANAR_ROUNDOFF) on either side of the triangle's plane and the edge's line passes inside
     the triangle."""
     triangles, edges = surface.triangles, surface.edges
-    centroid = x[triangles].mean(axis=1)
-    reach = np.linalg.norm(x[triangles] - centroid[:, None], axis=2).max()
     half = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1).max() / 2
-    near = cKDTree(centroid).query_ball_point(x[edges].mean(axis=1), reach + half)
-    e = np.repeat(np.arange(len(edges)), [len(k) for k in near])
-    t = np.concatenate([np.asarray(k, dtype=np.int64) for k in near] + [np.zeros(0, np.int64)])
-    shares = (edges[e][:, :, None] == triangles[t][:, None, :]).any(axis=(1, 2))
-    same = bodies[edges[e, 0]] == bodies[triangles[t, 0]]
-    moves = free[edges[e]].any(axis=1) | free[triangles[t]].any(axis=1)
-    keep = ~shares & (~same | self_contact) & moves
-    e, t = e[keep], t[keep]
+    floor = COPLANAR_ROUNDOFF * (2 * half) ** 3     # coplanar up to round-off (one flat face): not a crossing
 
     def six_volume(a, b, c, d):
         return np.einsum("ka,ka->k", np.cross(b - a, c - a), d - a)
 
-    p, q = x[edges[e, 0]], x[edges[e, 1]]
-    a, b, c = (x[triangles[t, k]] for k in range(3))
-    floor = COPLANAR_ROUNDOFF * (2 * half) ** 3     # coplanar up to round-off (one flat face): not a crossing
-    vp, vq = six_volume(a, b, c, p), six_volume(a, b, c, q)
-    sides = (vp * vq < 0) & (np.abs(vp) > floor) & (np.abs(vq) > floor)
-    around = np.stack([six_volume(p, q, a, b), six_volume(p, q, b, c), six_volume(p, q, c, a)], axis=1)
-    hit = np.flatnonzero(sides & ((around >= 0).all(axis=1) | (around <= 0).all(axis=1)))
-    if len(hit) == 0:
-        return None
-    return tuple(sorted((int(bodies[edges[e[hit[0]], 0]]), int(bodies[triangles[t[hit[0]], 0]]))))
+    for e, t in overlapping_boxes(x[edges].min(axis=1), x[edges].max(axis=1),
+                                  x[triangles].min(axis=1), x[triangles].max(axis=1)):
+        shares = (edges[e][:, :, None] == triangles[t][:, None, :]).any(axis=(1, 2))
+        same = bodies[edges[e, 0]] == bodies[triangles[t, 0]]
+        moves = free[edges[e]].any(axis=1) | free[triangles[t]].any(axis=1)
+        keep = ~shares & (~same | self_contact) & moves
+        e, t = e[keep], t[keep]
+        p, q = x[edges[e, 0]], x[edges[e, 1]]
+        a, b, c = (x[triangles[t, k]] for k in range(3))
+        vp, vq = six_volume(a, b, c, p), six_volume(a, b, c, q)
+        sides = (vp * vq < 0) & (np.abs(vp) > floor) & (np.abs(vq) > floor)
+        around = np.stack([six_volume(p, q, a, b), six_volume(p, q, b, c), six_volume(p, q, c, a)], axis=1)
+        hit = np.flatnonzero(sides & ((around >= 0).all(axis=1) | (around <= 0).all(axis=1)))
+        if len(hit):
+            return tuple(sorted((int(bodies[edges[e[hit[0]], 0]]), int(bodies[triangles[t[hit[0]], 0]]))))
+    return None
 
 
 def enclosed_body(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray):
@@ -393,9 +438,7 @@ def enclosed_body(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray):
     moving[bodies[free]] = True
     first = np.unique(bodies, return_index=True)[1]
     tri_body = bodies[triangles[:, 0]]
-    within = (lower[:, None] >= lower[None]).all(axis=2) & (upper[:, None] <= upper[None]).all(axis=2)
-    within &= (moving[:, None] | moving[None]) & ~np.eye(n_bodies, dtype=bool)
-    for inner, outer in zip(*np.nonzero(within)):
+    for inner, outer in zip(*_boxes_within(lower, upper, moving)):
         a, b, c = (x[triangles[tri_body == outer, k]] - x[first[inner]] for k in range(3))
         la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
         volume = np.einsum("ka,ka->k", a, np.cross(b, c))
@@ -404,6 +447,20 @@ def enclosed_body(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray):
         if abs(np.arctan2(volume, den).sum() / (2 * np.pi)) > 0.5:
             return int(inner), int(outer)
     return None
+
+
+def _boxes_within(lower: np.ndarray, upper: np.ndarray, moving: np.ndarray, rows: int = 1024):
+    """(inner, outer): index arrays of the boxes [lower, upper] ((B, 3) each) that lie within another one,
+    at least one of the two moving ((B,) bool); compared `rows` inner boxes at a time (B x B may not fit)."""
+    found = [(np.zeros(0, np.int64), np.zeros(0, np.int64))]
+    for start in range(0, len(lower), rows):
+        inner = slice(start, start + rows)
+        within = (lower[inner, None] >= lower[None]).all(axis=2) & (upper[inner, None] <= upper[None]).all(axis=2)
+        within &= moving[inner, None] | moving[None]
+        i, j = np.nonzero(within)
+        i = i + start
+        found.append((i[i != j], j[i != j]))
+    return tuple(np.concatenate(k) for k in zip(*found))
 
 
 def as_contact(value):
