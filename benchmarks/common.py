@@ -18,6 +18,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "0")   # Taichi's banner sta
 from demo.cli import HelpFormatter  # noqa: E402  (imports taichi)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+GPU_MEMORY_GB = 16      # CUDA memory Taichi takes at ti.init (its default, 1 GB, is too small for a 1M-tet pile)
 
 
 def fail(message: str):
@@ -208,6 +209,8 @@ def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     kwargs = dict(default_fp=ti.f64, log_level=ti.WARN, kernel_profiler=kernel_profiler)
     if threads:
         kwargs["cpu_max_num_threads"] = int(threads)
+    if arch == "gpu":
+        kwargs["device_memory_GB"] = GPU_MEMORY_GB
     with contextlib.redirect_stdout(sys.stderr):    # "[Taichi] Starting on arch=...": not a result
         ti.init(arch=ti.cpu if arch == "cpu" else ti.cuda, **kwargs)
 
