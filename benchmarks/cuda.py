@@ -28,6 +28,7 @@ from benchmarks.contact import SOFT, _detect_and_sweep, measure_apart, measure_t
 from benchmarks.throughput import FULL_SIZES, QUICK_SIZES
 
 OUTPUTS = ("cuda.csv", "summary.md")
+PARTS = ("sweep", "contact", "pile")
 COLUMNS = ["measurement", "arch", "precision", "tets", "bodies", "ns_per_tet_iter", "ms_per_iter",
            "first_iteration_s", "contacts", "min_separation_mm", "detections_per_step", "refreshes_per_step",
            "step_ms", "detect_ms", "sweep_ms", "detect_per_sweep", "ns_per_tet_iter_none",
@@ -94,6 +95,7 @@ def main(argv=None):
     p.add_argument("--cells", type=positive(int), default=8, quick=2,
                    help="cells per side of each of the 8 contact bodies (6 tets per cell; 8: 24,576 tets)")
     p.add_argument("--min-seconds", type=positive(float), default=0.5, quick=0.02, help="least time per timing")
+    p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), help="the measurements to run")
     args = p.parse_args(argv)
     from solver._ti import is_arch_supported, ti
 
@@ -108,7 +110,7 @@ def main(argv=None):
 
     rows = []
     jobs = [("sweep", cells, precision) for precision in ("float64", "float32") for cells in sizes]
-    jobs += [("contact", None, None), ("pile", None, None)]
+    jobs = [job for job in jobs + [("contact", None, None), ("pile", None, None)] if job[0] in args.parts]
     for kind, cells, precision in progress(jobs, desc=f"cuda ({args.arch})", disable=args.no_progress):
         if kind == "sweep":
             rows.append(measure_sweep(solver, cells, precision, args.min_seconds))
@@ -119,7 +121,7 @@ def main(argv=None):
             rows.append(measure_falling_pile(solver, args.pile, args.steps, args.min_seconds))
     for r in rows:
         r["arch"] = args.arch
-    text = table(rows, COLUMNS, title=f"VBD on {args.arch} (CUDA)" if args.arch == "gpu" else "VBD on the CPU")
+    text = table(rows, [c for c in COLUMNS if any(c in r for r in rows)], title=f"VBD on {args.arch} (CUDA)" if args.arch == "gpu" else "VBD on the CPU")
     print(text)
     write_csv(f"{out}/cuda.csv", rows, COLUMNS)
     with open(f"{out}/summary.md", "w") as fh:

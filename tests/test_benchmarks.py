@@ -412,6 +412,7 @@ BAD_VALUES = [
     ("cuda", ["--steps", "-1"], "--steps: expected a positive whole number"),
     ("cuda", ["--cells", "x"], "--cells: expected a positive whole number"),
     ("cuda", ["--min-seconds", "inf"], "--min-seconds: expected a positive number"),
+    ("cuda", ["--parts", "sweep", "all"], "--parts: invalid choice: 'all'"),
 ]
 
 

@@ -149,7 +149,7 @@ def test_walking_only_the_near_pairs_and_leaving_out_refreshes_change_no_step(mo
     r + 2 horizon) while no vertex has moved farther than the horizon, and a step leaves out the refresh at
     x_n where it would neither detect nor clamp the guess (`contact_sweep.guess_within_bounds`); the steps
     are bit for bit those of a sweep that walks every live pair (horizon 0: every move crosses it) and
-    refreshes at every x_n."""
+    refreshes at every x_n (on the CPU; to round-off on CUDA)."""
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
     cubes = [solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(x, 0, 0.004)) for x in (0, 0.107)]
     mesh = solver.merge_meshes([slab, *cubes])
@@ -173,7 +173,10 @@ def test_walking_only_the_near_pairs_and_leaving_out_refreshes_change_no_step(mo
         runs.append((sim.positions, near_only, stage.refreshes + stage.detections, sim.contact_count()))
     (x_short, near_only, refreshes, count), (x_every, none, every_refresh, _) = runs
     assert count > 0 and near_only > 0 and none == 0 and refreshes < every_refresh
-    np.testing.assert_array_equal(x_short, x_every)
+    if solver.backend.running_on_cpu():
+        np.testing.assert_array_equal(x_short, x_every)
+    else:       # CUDA's per-body translation sums are atomic adds: 1e-14 m apart after 40 steps on an H200
+        np.testing.assert_allclose(x_short, x_every, rtol=0, atol=1e-12)
 
 
 @ti.kernel
