@@ -222,24 +222,26 @@ def sort_segment(values: ti.template(), begin, end):
 
 
 @ti.func
-def is_excluded(keys: ti.template(), n_keys, key):
-    """Whether the int64 key is among the sorted keys[:n_keys] (binary search)."""
-    a = 0
-    b = n_keys
+def is_excluded(keys: ti.template(), begin, end, key):
+    """Whether the int64 key is among the sorted keys[begin:end] (binary search)."""
+    a = begin
+    b = end
     while a < b:
         m = (a + b) // 2
         if keys[m] < key:
             a = m + 1
         else:
             b = m
-    return a < n_keys and keys[a] == key
+    return a < end and keys[a] == key
 
 
 @ti.func
-def admissible(same_body, search, excluded: ti.template(), n_excluded, key, rest_mode):
+def admissible(same_body, search, excluded: ti.template(), within, key, rest_mode):
     """Whether two primitives that share no vertex, not both still, make a pair (module docstring):
     same_body, search the first one's body's `active_bodies` flags, `key` their entry in the sorted rest
-    exclusions (looked up only for a body that may have self pairs). In rest mode: whether they lie in one
+    exclusions, looked up (only for a body that may have self pairs) in within = [begin, end) of
+    `excluded`, the keys of the query's own primitive (a short run of the sorted keys, read in cache,
+    where a search of all of them would miss it at each step). In rest mode: whether they lie in one
     body (to list the self-contact exclusions at rest)."""
     ok = same_body
     if rest_mode == 0:
@@ -247,7 +249,7 @@ def admissible(same_body, search, excluded: ti.template(), n_excluded, key, rest
         if same_body:
             ok = False
             if search & SEARCH_SELF:
-                ok = not is_excluded(excluded, n_excluded, key)
+                ok = not is_excluded(excluded, within[0], within[1], key)
     return ok
 
 
@@ -310,8 +312,8 @@ def record(counter: ti.template(), found: ti.template(), found_distance: ti.temp
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
                  active: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
-                 moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
-                 n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
+                 moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), excluded_ee: ti.types.ndarray(),
+                 excluded_range: ti.types.ndarray(),
                  box: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
                  bucket_fill: ti.types.ndarray(), bucket_start: ti.types.ndarray(), entries: ti.types.ndarray(),
                  entry_box: ti.types.ndarray(),
@@ -324,7 +326,9 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                  rest_mode: ti.i32, serial: ti.template(), one_thread: ti.template(), dtype: ti.template()) -> ti.i32:
     """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
     every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
-    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs.
+    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs. excluded_vt,
+    excluded_ee: the sorted keys of the rest exclusions; excluded_range (V + E,) 2-vectors: [begin, end) of
+    each query's own keys there (`admissible`).
     Grid: box (2, T + E) the items' boxes (triangles, then edges; lower corners in row 0, upper in row 1),
     lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit, bucket_start (B + 1,) and entries the
     items of each bucket, ascending, with entry_box (2, len(entries)) their boxes in the same order (the
@@ -410,8 +414,8 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                         t = triangles[item]
                         if v != t[0] and v != t[1] and v != t[2]:
                             key = ti.cast(v, ti.i64) * n_triangles + item
-                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, n_excluded_vt, key,
-                                          rest_mode):
+                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, excluded_range[query],
+                                          key, rest_mode):
                                 d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
                                                       positions[row, t[2]], dtype)
                                 if d < q:
@@ -440,8 +444,8 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                         eb = edges[b]
                         if ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]:
                             key = ti.cast(a, ti.i64) * n_edges + b
-                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee, n_excluded_ee,
-                                          key, rest_mode):
+                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee,
+                                          excluded_range[query], key, rest_mode):
                                 d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
                                 if d < q:
                                     record(counter, found, found_distance,
@@ -560,6 +564,8 @@ class ContactDetector:
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = _device(empty, ti.i64), _device(empty, ti.i64)
         self._n_excluded = (0, 0)
+        self._excluded_range = ti.Vector.ndarray(2, ti.i32, V + E)    # per query: none
+        self._excluded_range.fill(0)
         B = int(self.bodies.max()) + 1
         self.active = ti.ndarray(ti.i32, B)
         self.active.fill(1)
@@ -586,6 +592,10 @@ class ContactDetector:
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = (_device(np.concatenate([k, empty]), ti.i64) for k in keys)
         self._n_excluded = (len(keys[0]), len(keys[1]))
+        first = (self.surface.vertices.astype(np.int64) * T, np.arange(E, dtype=np.int64) * E)   # each query's keys
+        self._excluded_range.from_numpy(np.concatenate(
+            [np.stack([np.searchsorted(k, lo), np.searchsorted(k, lo + size)], axis=1)
+             for k, lo, size in zip(keys, first, (T, E))]).astype(np.int32))
         self.n_pairs = 0
         np.minimum.at(margin, self.bodies[vertices[~close, 0]], distance[~close].astype(np.float64) - q)
         return margin
@@ -644,7 +654,7 @@ class ContactDetector:
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
                                  self.active, self._own_items, self._free, self._moving, self._excluded_vt,
-                                 self._n_excluded[0], self._excluded_ee, self._n_excluded[1], self._box,
+                                 self._excluded_ee, self._excluded_range, self._box,
                                  self._lo, self._hi, self._bucket_fill, self._bucket_start, self._entries,
                                  self._entry_box, self._partial, self._counter, self._found, self._found_distance,
                                  self._query_count, self._query_start, self._vertex_fill,
