@@ -128,6 +128,25 @@ def test_pairs_of_fixed_vertices_only_are_skipped():
     assert ContactDetector(mesh, np.zeros(mesh.n_vertices, bool), contact).detect(x) == 0
 
 
+def test_each_query_looks_up_exactly_its_own_exclusions():
+    """The rest exclusions a query searches (excluded_range) are all the keys of its own primitive: a
+    vertex v's vertex-triangle keys v T + t, an edge a's edge-edge keys a E + b."""
+    solver.ensure_taichi()
+    rng = np.random.default_rng(22)
+    mesh = _scene(rng, n_bodies=3)
+    detector = ContactDetector(mesh, np.ones(mesh.n_vertices, bool), solver.Contact(radius=0.01, query_radius=0.08))
+    surface = detector.surface
+    V, T, E = len(surface.vertices), len(surface.triangles), len(surface.edges)
+    n_vt, n_ee = detector._n_excluded
+    assert n_vt > 0 and n_ee > 0
+    ranges = detector._excluded_range.to_numpy()
+    for keys, queries, owner, size in ((detector._excluded_vt.to_numpy()[:n_vt], ranges[:V], surface.vertices, T),
+                                       (detector._excluded_ee.to_numpy()[:n_ee], ranges[V:], np.arange(E), E)):
+        assert (queries[:, 1] - queries[:, 0]).sum() == len(keys)     # every key in one query's range
+        for (begin, end), own in zip(queries, owner):
+            assert (keys[begin:end] // size == own).all()
+
+
 def test_numpy_twin_finds_the_same_pairs_and_exclusions():
     from solver.physics.contact_detection import find_pairs_np, rest_exclusions_np, vertex_bounds_np
 
@@ -300,3 +319,21 @@ def test_float32_positions_give_the_same_pairs():
     assert found[ti.f64].keys() - borderline == found[ti.f32].keys() - borderline
     for key in found[ti.f32].keys() - borderline:
         assert found[ti.f32][key] == pytest.approx(found[ti.f64][key], rel=1e-4, abs=1e-6)
+
+
+def test_one_thread_and_parallel_loops_find_the_same_pairs():
+    """A small mesh on the CPU detects on one thread (SERIAL_DETECT_TETS), a large one in parallel loops:
+    the pairs, their order, the incidence lists and the bounds are the same either way."""
+    solver.ensure_taichi()
+    rng = np.random.default_rng(23)
+    mesh = _scene(rng, n_bodies=4)
+    contact = solver.Contact(radius=0.01, query_radius=0.08)
+    free = np.ones(mesh.n_vertices, bool)
+    one, many = ContactDetector(mesh, free, contact), ContactDetector(mesh, free, contact)
+    one._one_thread, many._one_thread = True, False
+    for _ in range(3):
+        x = _positions(mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape))
+        assert one.detect(x) == many.detect(x) > 0
+        for a, b in zip(one.pairs() + one.vertex_pairs(), many.pairs() + many.vertex_pairs()):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(one.bound.to_numpy(), many.bound.to_numpy())

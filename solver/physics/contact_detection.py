@@ -7,11 +7,12 @@ One detection is two kernel launches (their top-level loops run one after the ot
      has no self pair (below). Their primitives go into no grid and make no query;
   1. every triangle and edge of the other bodies gets its box, as a range of grid cells;
   2. the grid: count the entries of each hash bucket, prefix sum, scatter the items into their
-     buckets, sort each bucket (so that everything after is deterministic);
+     buckets, sort each bucket (so that everything after is deterministic), and copy each item's box
+     next to its entries, so that a query reads the boxes of a bucket in a row;
   3. every surface vertex looks up the triangles in the cells within q (the query radius) of it, and
-     every edge the edges of higher index in the cells of its box grown by q; a candidate is reported
-     once, in the lowest cell the two ranges share (first in each sorted bucket). A candidate whose box
-     meets the query's grown one, that passes the filters below and lies closer than q is a pair: one
+     every edge the edges of higher index in the cells of its box grown by q; an entry whose box
+     meets the query's grown one is a candidate, reported once, in the lowest cell the two ranges share
+     (first in each sorted bucket). A candidate that passes the filters below and lies closer than q is a pair: one
      pass notes each pair with its query and its rank there, a prefix sum of the counts per query places
      them in order of query and rank (the same order on every run, whatever the threads did). A query
      of a body that has no self pair to seek skips its own body's items in each bucket with one binary
@@ -50,6 +51,11 @@ REST_MARGIN = 2.0        # the same-body pairs closer than this x q at rest are 
 POLAR_ITERATIONS = 8     # `best_rotation`: Newton steps towards the polar factor (any rotation is safe)
 SEARCH_OTHERS, SEARCH_SELF = 1, 2    # `active_bodies` flags: a body may have pairs with others / with itself
 RIGID_SLACK = 1e-3       # x q: round-off allowance when `active_bodies` compares 2 delta with D_min - q
+# Below this many tets a CPU detection runs every loop on one thread, as the sweep does below
+# vertex_solve.SERIAL_SWEEP_TETS: each parallel loop costs tens of us to start and end on the CPU backend,
+# more than its work on a small mesh (2 shared cores: 0.75x the time of the parallel loops on a pile of one
+# ball, 0.86x on 64 cubes, 5,376 tets; 0.93x on 64 balls, 9,600 tets, but 1.14x on 24,576 touching tets).
+SERIAL_DETECT_TETS = 6000
 
 
 @ti.func
@@ -216,24 +222,26 @@ def sort_segment(values: ti.template(), begin, end):
 
 
 @ti.func
-def is_excluded(keys: ti.template(), n_keys, key):
-    """Whether the int64 key is among the sorted keys[:n_keys] (binary search)."""
-    a = 0
-    b = n_keys
+def is_excluded(keys: ti.template(), begin, end, key):
+    """Whether the int64 key is among the sorted keys[begin:end] (binary search)."""
+    a = begin
+    b = end
     while a < b:
         m = (a + b) // 2
         if keys[m] < key:
             a = m + 1
         else:
             b = m
-    return a < n_keys and keys[a] == key
+    return a < end and keys[a] == key
 
 
 @ti.func
-def admissible(same_body, search, excluded: ti.template(), n_excluded, key, rest_mode):
+def admissible(same_body, search, excluded: ti.template(), within, key, rest_mode):
     """Whether two primitives that share no vertex, not both still, make a pair (module docstring):
     same_body, search the first one's body's `active_bodies` flags, `key` their entry in the sorted rest
-    exclusions (looked up only for a body that may have self pairs). In rest mode: whether they lie in one
+    exclusions, looked up (only for a body that may have self pairs) in within = [begin, end) of
+    `excluded`, the keys of the query's own primitive (a short run of the sorted keys, read in cache,
+    where a search of all of them would miss it at each step). In rest mode: whether they lie in one
     body (to list the self-contact exclusions at rest)."""
     ok = same_body
     if rest_mode == 0:
@@ -241,7 +249,7 @@ def admissible(same_body, search, excluded: ti.template(), n_excluded, key, rest
         if same_body:
             ok = False
             if search & SEARCH_SELF:
-                ok = not is_excluded(excluded, n_excluded, key)
+                ok = not is_excluded(excluded, within[0], within[1], key)
     return ok
 
 
@@ -256,17 +264,22 @@ def first_in_bucket(entries: ti.template(), begin, e):
 
 
 @ti.func
-def new_candidate(entries: ti.template(), lo: ti.template(), moving: ti.template(), begin, e, lo_query, c, still):
-    """Whether the item entries[e], in cell c's bucket (which starts at begin), is one the query whose cell
-    range starts at lo_query has not met in a cell before: c is the lowest cell of both ranges (lo[item]
-    the item's first cell) and the entry is the item's first in the bucket; for a still query, only items
-    with a free vertex (moving). The cheapest tests first: most entries fail the first."""
+def new_candidate(entries: ti.template(), entry_box: ti.template(), moving: ti.template(), begin, e, lower, upper,
+                  c, cell, still):
+    """Whether the item entries[e], in cell c's bucket (which starts at begin), is a candidate of the query
+    whose box (grown by q) is [lower, upper], met for the first time: the two boxes overlap (entry_box[0, e]
+    and entry_box[1, e], the item's box stored with the entry, read in bucket order), c is the lowest cell
+    of both cell ranges (the cell of max(lower, item's lower corner): floor is monotonic) and the entry is
+    the item's first in the bucket; for a still query, only items with a free vertex (moving). The box test
+    first: most entries fail it."""
     new = False
-    if (ti.max(lo_query, lo[entries[e]]) == c).all():
-        if first_in_bucket(entries, begin, e):
-            new = True
-            if still:
-                new = moving[entries[e]] != 0
+    item_lo = entry_box[0, e]
+    if (lower <= entry_box[1, e]).all() and (item_lo <= upper).all():
+        if (cell_of(ti.max(lower, item_lo), cell) == c).all():
+            if first_in_bucket(entries, begin, e):
+                new = True
+                if still:
+                    new = moving[entries[e]] != 0
     return new
 
 
@@ -285,16 +298,13 @@ def first_above(entries: ti.template(), begin, end, item):
 
 
 @ti.func
-def record(counter: ti.template(), found_query: ti.template(), found_rank: ti.template(),
-           found_partner: ti.template(), found_distance: ti.template(), query, rank, partner, d):
+def record(counter: ti.template(), found: ti.template(), found_distance: ti.template(), query, rank, partner, d):
     """Note the pair (query, partner) at distance d, the rank-th of its query, in the next free row
-    (counter[0], then one up) of found_query/found_rank/found_partner/found_distance (C,); rows past C
+    (counter[0], then one up) of found ((C,) 3-vectors: query, rank, partner) and found_distance (C,); rows past C
     are counted, not kept."""
     s = ti.atomic_add(counter[0], 1)
-    if s < found_query.shape[0]:
-        found_query[s] = query
-        found_rank[s] = rank
-        found_partner[s] = partner
+    if s < found.shape[0]:
+        found[s] = ti.Vector([query, rank, partner])
         found_distance[s] = d
 
 
@@ -302,29 +312,33 @@ def record(counter: ti.template(), found_query: ti.template(), found_rank: ti.te
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
                  active: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
-                 moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(),
-                 n_excluded_vt: ti.i32, excluded_ee: ti.types.ndarray(), n_excluded_ee: ti.i32,
-                 box_lo: ti.types.ndarray(), box_hi: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
+                 moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), excluded_ee: ti.types.ndarray(),
+                 excluded_range: ti.types.ndarray(),
+                 box: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
                  bucket_fill: ti.types.ndarray(), bucket_start: ti.types.ndarray(), entries: ti.types.ndarray(),
-                 partial: ti.types.ndarray(), counter: ti.types.ndarray(), found_query: ti.types.ndarray(),
-                 found_rank: ti.types.ndarray(), found_partner: ti.types.ndarray(),
+                 entry_box: ti.types.ndarray(),
+                 partial: ti.types.ndarray(), counter: ti.types.ndarray(), found: ti.types.ndarray(),
                  found_distance: ti.types.ndarray(), query_count: ti.types.ndarray(),
                  query_start: ti.types.ndarray(), vertex_fill: ti.types.ndarray(), kind: ti.types.ndarray(),
                  pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
                  offsets: ti.types.ndarray(), incidence: ti.types.ndarray(), bound: ti.types.ndarray(),
                  q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32,
-                 rest_mode: ti.i32, serial: ti.template(), dtype: ti.template()) -> ti.i32:
+                 rest_mode: ti.i32, serial: ti.template(), one_thread: ti.template(), dtype: ti.template()) -> ti.i32:
     """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
     every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
-    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs.
-    Grid: box_lo/box_hi (T + E,) the items' boxes
-    (triangles, then edges), lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit,
-    bucket_start (B + 1,) and entries the items of each bucket, ascending; moving (T + E,) whether an
-    item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes its pairs
-    with their rank in found_query/found_rank/found_partner/found_distance (capacity C; counter (1,)
-    counts them), then they are written to kind/pair/primitives/distance (C,) at query_start[query] +
+    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs. excluded_vt,
+    excluded_ee: the sorted keys of the rest exclusions; excluded_range (V + E,) 2-vectors: [begin, end) of
+    each query's own keys there (`admissible`).
+    Grid: box (2, T + E) the items' boxes (triangles, then edges; lower corners in row 0, upper in row 1),
+    lo/hi their cell ranges, bucket_fill (B,) zero on entry and exit, bucket_start (B + 1,) and entries the
+    items of each bucket, ascending, with entry_box (2, len(entries)) their boxes in the same order (the
+    narrow phase reads a bucket's boxes one after the other, not each item's from box); moving (T + E,)
+    whether an item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes
+    its pairs with their rank in found (3-vectors: query, rank, partner) and found_distance (capacity C;
+    counter (1,) counts them), then they are written to kind/pair/primitives/distance (C,) at query_start[query] +
     rank and listed per vertex in offsets (N + 1,)/incidence (4C,) (vertex_fill (N,) zero on entry and
-    exit). serial: prefix sums in one serial loop (CPU). Returns the number of pairs; if they exceed C,
+    exit). serial: prefix sums in one serial loop (CPU); one_thread: every loop on one thread (small
+    meshes on the CPU, `SERIAL_DETECT_TETS`). Returns the number of pairs; if they exceed C,
     nothing past `found` is written; if the grid's entries exceed their buffer, -(entries needed) and
     no pair is sought."""
     n_vertices = vertices.shape[0]
@@ -333,14 +347,15 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     n_items = lo.shape[0]
     n_buckets = bucket_fill.shape[0]
     n = vertex_fill.shape[0]
+    ti.loop_config(serialize=one_thread)
     for item in range(n_items):
         first = triangles[item][0] if item < n_triangles else edges[item - n_triangles][0]
         lo[item] = ti.Vector([0, 0, 0])
         hi[item] = ti.Vector([-1, -1, -1])        # no cell: an item of a body left out
         if rest_mode != 0 or active[body[first]] != 0:
             lower, upper = item_box(positions, row, triangles, edges, item, dtype)
-            box_lo[item] = lower
-            box_hi[item] = upper
+            box[0, item] = lower
+            box[1, item] = upper
             lo[item] = cell_of(lower, cell)
             hi[item] = cell_of(upper, cell)
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
@@ -350,6 +365,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     n_entries = bucket_start[n_buckets]
     fits = n_entries <= entries.shape[0]
     counter[0] = 0
+    ti.loop_config(serialize=one_thread)
     for item in range(n_items):                 # counts back down to zero, ready for the next detection
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
                                   (lo[item][2], hi[item][2] + 1)):
@@ -357,8 +373,14 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
             e = bucket_start[h + 1] - ti.atomic_sub(bucket_fill[h], 1)     # from the front: `sort_segment`
             if fits:
                 entries[e] = item
+    ti.loop_config(serialize=one_thread)
     for h in range(n_buckets if fits else 0):
         sort_segment(entries, bucket_start[h], bucket_start[h + 1])
+    ti.loop_config(serialize=one_thread)
+    for e in range(n_entries if fits else 0):
+        entry_box[0, e] = box[0, entries[e]]
+        entry_box[1, e] = box[1, entries[e]]
+    ti.loop_config(serialize=one_thread)
     for query in range(n_vertices + n_edges if fits else 0):
         rank = 0
         searched = True
@@ -388,17 +410,16 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                     if own[0] <= item < own[1]:         # its own body's run: no partner there
                         e = first_above(entries, e, end, own[1] - 1)
                         continue
-                    if new_candidate(entries, lo, moving, begin, e, lo_p, c, still):
+                    if new_candidate(entries, entry_box, moving, begin, e, p_lo, p_hi, c, cell, still):
                         t = triangles[item]
-                        near = (p_lo <= box_hi[item]).all() and (box_lo[item] <= p_hi).all()
-                        if near and v != t[0] and v != t[1] and v != t[2]:
+                        if v != t[0] and v != t[1] and v != t[2]:
                             key = ti.cast(v, ti.i64) * n_triangles + item
-                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, n_excluded_vt, key,
-                                          rest_mode):
+                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, excluded_range[query],
+                                          key, rest_mode):
                                 d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
                                                       positions[row, t[2]], dtype)
                                 if d < q:
-                                    record(counter, found_query, found_rank, found_partner, found_distance,
+                                    record(counter, found, found_distance,
                                            query, rank, item, d)
                                     rank += 1
                     e += 1
@@ -419,27 +440,25 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 for e in range(first_above(entries, begin, end, ti.max(n_triangles + a, own[3] - 1)), end):
                     item = entries[e]
                     b = item - n_triangles
-                    if new_candidate(entries, lo, moving, begin, e, lo_a, c, still):
+                    if new_candidate(entries, entry_box, moving, begin, e, lower, upper, c, cell, still):
                         eb = edges[b]
-                        near = (lower <= box_hi[item]).all() and (box_lo[item] <= upper).all()
-                        disjoint = ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]
-                        if near and disjoint:
+                        if ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]:
                             key = ti.cast(a, ti.i64) * n_edges + b
-                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee, n_excluded_ee,
-                                          key, rest_mode):
+                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee,
+                                          excluded_range[query], key, rest_mode):
                                 d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
                                 if d < q:
-                                    record(counter, found_query, found_rank, found_partner, found_distance,
+                                    record(counter, found, found_distance,
                                            query, rank, b, d)
                                     rank += 1
         query_count[query] = rank
     n_pairs = counter[0]
-    placed = fits and n_pairs <= found_query.shape[0]
+    placed = fits and n_pairs <= found.shape[0]
     scan(query_count, query_start, n_vertices + n_edges, chunk, partial, serial)
+    ti.loop_config(serialize=one_thread)
     for s in range(n_pairs if placed else 0):
-        query = found_query[s]
-        slot = query_start[query] + found_rank[s]
-        partner = found_partner[s]
+        query, rank, partner = found[s][0], found[s][1], found[s][2]
+        slot = query_start[query] + rank
         if query < n_vertices:
             v = vertices[query]
             t = triangles[partner]
@@ -456,10 +475,12 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
         for j in ti.static(range(4)):
             ti.atomic_add(vertex_fill[pair[slot][j]], 1)
     scan(vertex_fill, offsets, n, chunk, partial, serial)
+    ti.loop_config(serialize=one_thread)
     for p in range(n_pairs if placed else 0):   # counts back down to zero, ready for the next detection
         for j in ti.static(range(4)):
             v = pair[p][j]
             incidence[offsets[v + 1] - ti.atomic_sub(vertex_fill[v], 1)] = p   # from the front
+    ti.loop_config(serialize=one_thread)
     for v in range(n):
         sort_segment(incidence, offsets[v], offsets[v + 1])
         nearest = q
@@ -519,14 +540,13 @@ class ContactDetector:
         self._free = _device(free.astype(np.int32), ti.i32)
         self._moving = _device(np.concatenate([free[self.surface.triangles].any(axis=1),
                                                free[self.surface.edges].any(axis=1)]).astype(np.int32), ti.i32)
-        self._box_lo = ti.Vector.ndarray(3, dtype, T + E)
-        self._box_hi = ti.Vector.ndarray(3, dtype, T + E)
+        self._box = ti.Vector.ndarray(3, dtype, (2, T + E))
         self._lo = ti.Vector.ndarray(3, ti.i32, T + E)
         self._hi = ti.Vector.ndarray(3, ti.i32, T + E)
         self._bucket_fill = ti.ndarray(ti.i32, buckets)       # zero between detections
         self._bucket_fill.fill(0)
         self._bucket_start = ti.ndarray(ti.i32, buckets + 1)
-        self._entries = ti.ndarray(ti.i32, 4 * (T + E))
+        self._allocate_entries(4 * (T + E))
         self._counter = ti.ndarray(ti.i32, 1)
         self._query_count = ti.ndarray(ti.i32, V + E)
         self._query_start = ti.ndarray(ti.i32, V + E + 1)
@@ -535,6 +555,7 @@ class ContactDetector:
         longest = max(buckets, V + E, n)
         self._chunk = max(64, int(np.sqrt(longest)))
         self._serial = initialised_arch() == ti.cpu
+        self._one_thread = self._serial and mesh.n_tets < SERIAL_DETECT_TETS
         self._partial = ti.ndarray(ti.i32, longest // self._chunk + 1)
         self.incidence_offsets = ti.ndarray(ti.i32, n + 1)
         self.bound = ti.ndarray(dtype, n)
@@ -543,6 +564,8 @@ class ContactDetector:
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = _device(empty, ti.i64), _device(empty, ti.i64)
         self._n_excluded = (0, 0)
+        self._excluded_range = ti.Vector.ndarray(2, ti.i32, V + E)    # per query: none
+        self._excluded_range.fill(0)
         B = int(self.bodies.max()) + 1
         self.active = ti.ndarray(ti.i32, B)
         self.active.fill(1)
@@ -569,6 +592,10 @@ class ContactDetector:
         empty = np.zeros(1, dtype=np.int64)
         self._excluded_vt, self._excluded_ee = (_device(np.concatenate([k, empty]), ti.i64) for k in keys)
         self._n_excluded = (len(keys[0]), len(keys[1]))
+        first = (self.surface.vertices.astype(np.int64) * T, np.arange(E, dtype=np.int64) * E)   # each query's keys
+        self._excluded_range.from_numpy(np.concatenate(
+            [np.stack([np.searchsorted(k, lo), np.searchsorted(k, lo + size)], axis=1)
+             for k, lo, size in zip(keys, first, (T, E))]).astype(np.int32))
         self.n_pairs = 0
         np.minimum.at(margin, self.bodies[vertices[~close, 0]], distance[~close].astype(np.float64) - q)
         return margin
@@ -596,11 +623,13 @@ class ContactDetector:
         self._rotation = ti.Matrix.ndarray(3, 3, ti.f64, B)
         self._deviation = ti.ndarray(ti.f64, B)
 
+    def _allocate_entries(self, capacity: int):
+        self._entries = ti.ndarray(ti.i32, capacity)
+        self._entry_box = ti.Vector.ndarray(3, self.dtype, (2, capacity))
+
     def _allocate_pairs(self, capacity: int):
         self._capacity = capacity
-        self._found_query = ti.ndarray(ti.i32, capacity)
-        self._found_rank = ti.ndarray(ti.i32, capacity)
-        self._found_partner = ti.ndarray(ti.i32, capacity)
+        self._found = ti.Vector.ndarray(3, ti.i32, capacity)
         self._found_distance = ti.ndarray(self.dtype, capacity)
         self.kind = ti.ndarray(ti.i32, capacity)
         self.pair = ti.Vector.ndarray(4, ti.i32, capacity)
@@ -625,17 +654,16 @@ class ContactDetector:
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
                                  self.active, self._own_items, self._free, self._moving, self._excluded_vt,
-                                 self._n_excluded[0], self._excluded_ee, self._n_excluded[1], self._box_lo,
-                                 self._box_hi, self._lo, self._hi,
-                                 self._bucket_fill, self._bucket_start, self._entries, self._partial,
-                                 self._counter, self._found_query, self._found_rank, self._found_partner,
-                                 self._found_distance, self._query_count, self._query_start, self._vertex_fill,
+                                 self._excluded_ee, self._excluded_range, self._box,
+                                 self._lo, self._hi, self._bucket_fill, self._bucket_start, self._entries,
+                                 self._entry_box, self._partial, self._counter, self._found, self._found_distance,
+                                 self._query_count, self._query_start, self._vertex_fill,
                                  self.kind, self.pair, self.primitives, self.distance, self.incidence_offsets,
                                  self.incidence, self.bound, q, c.bound_relaxation, self.cell,
-                                 self._mask, self._chunk, int(rest_mode), self._serial,
+                                 self._mask, self._chunk, int(rest_mode), self._serial, self._one_thread,
                                  self.dtype)
             if found < 0:
-                self._entries = ti.ndarray(ti.i32, -2 * found)
+                self._allocate_entries(-2 * found)
             elif found > self._capacity:
                 self._allocate_pairs(2 * found)
             else:
