@@ -90,3 +90,43 @@ def test_the_crossing_judge_sees_a_vertex_pushed_through_a_face():
     folded[top_centre] = [0.05, 0.05, -0.02]
     assert len(crossings(folded, cube.tets)[0]) > 0
     assert len(crossings(folded, cube.tets, self_contact=False)[0]) == 0
+
+
+def _random_boxes(rng, n, scale):
+    lo = rng.uniform(-1, 1, (n, 3))
+    return lo, lo + rng.uniform(0, 1, (n, 3)) * scale
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_overlapping_boxes_finds_every_overlapping_pair_once(seed, monkeypatch):
+    """The start-state check's candidates (`overlapping_boxes`) are exactly the brute-force overlapping pairs,
+    each once and in order, also with boxes of very different sizes (a few large ones among many small,
+    as a wall among balls) and in chunks smaller than the result."""
+    from solver.vbd import contact_state
+
+    monkeypatch.setattr(contact_state, "PAIR_CHUNK", 7)
+    rng = np.random.default_rng(seed)
+    lo_a, hi_a = _random_boxes(rng, 60, rng.choice([0.01, 0.1, 0.5]))
+    lo_b, hi_b = _random_boxes(rng, 40, 0.05)
+    lo_b[:3], hi_b[:3] = _random_boxes(rng, 3, 1.5)
+    overlap = ((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None])).all(axis=2)
+    chunks = list(contact_state.overlapping_boxes(lo_a, hi_a, lo_b, hi_b))
+    i, j = (np.concatenate([c[k] for c in chunks] + [np.zeros(0, np.int64)]) for k in (0, 1))
+    assert all(len(c[0]) <= 7 for c in chunks)
+    expected_i, expected_j = np.nonzero(overlap)
+    np.testing.assert_array_equal(i, expected_i)
+    np.testing.assert_array_equal(j, expected_j)
+
+
+def test_boxes_within_finds_every_enclosed_box_of_a_moving_pair():
+    from solver.vbd.contact_state import _boxes_within
+
+    rng = np.random.default_rng(5)
+    lower, upper = _random_boxes(rng, 300, 0.3)
+    lower[:20], upper[:20] = lower[:20] - 0.5, upper[:20] + 0.5       # some large boxes holding small ones
+    moving = rng.random(300) < 0.7
+    within = (lower[:, None] >= lower[None]).all(axis=2) & (upper[:, None] <= upper[None]).all(axis=2)
+    within &= (moving[:, None] | moving[None]) & ~np.eye(300, dtype=bool)
+    inner, outer = _boxes_within(lower, upper, moving, rows=64)
+    assert within.sum() > 20
+    assert sorted(zip(inner.tolist(), outer.tolist())) == sorted(zip(*(k.tolist() for k in np.nonzero(within))))
