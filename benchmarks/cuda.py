@@ -99,6 +99,7 @@ def main(argv=None):
     args = p.parse_args(argv)
     from solver._ti import is_arch_supported, ti
 
+    ti.set_logging_level(ti.ERROR)      # the CUDA probe's own warning: the line below says what happened
     if args.arch == "gpu" and not is_arch_supported(ti.cuda):
         fail("no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
     sizes = [c for c in (QUICK_SIZES if args.quick else FULL_SIZES) if 6 * np.prod(c) <= args.max_tets]
