@@ -586,7 +586,6 @@ def test_the_readme_says_what_each_benchmark_writes(name):
     assert sorted(f.strip(" `") for f in written.split(",")) == sorted(files)
 
 
-@pytest.mark.slow
 @pytest.mark.backend
 def test_newton_speed_measures_only_the_installed_linear_solvers(tmp_path, capsys, monkeypatch):
     """Without cvxopt and cholespy (the default install) there are no CHOLMOD or cholespy rows: they would

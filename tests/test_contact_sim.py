@@ -170,7 +170,8 @@ def test_converged_vbd_matches_newton_reference_with_contact():
     np.testing.assert_allclose(sim.residual(), -g, rtol=0, atol=1e-9 * np.abs(g).max())
 
 
-@pytest.mark.parametrize("method", ["vbd", pytest.param("newton", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["vbd", "newton"])
 def test_first_contact_compiles_no_kernel(arch, method):
     """Two cubes drift into each other: once the first step has run, no kernel compiles any more, also when
     the first pair appears (the contact kernels are compiled before: `ContactStage.compile_kernels`, and for

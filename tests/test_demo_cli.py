@@ -119,26 +119,21 @@ def test_homework_and_figures_are_dispatched_lazily(monkeypatch):
     assert seen == {"homework": ["check", "--x"], "figures": []}
 
 
-def test_help_and_list_in_a_fresh_process():
-    run = lambda *a: subprocess.run([sys.executable, "-m", "demo", *a], cwd=REPO, capture_output=True, text=True)
-    helped = run("render", "--help")
-    assert helped.returncode == 0 and "(default: 1280x720)" in " ".join(helped.stdout.split())
-    listed = run("list")
-    assert listed.returncode == 0 and any(line.startswith("stiffness_sweep ") for line in listed.stdout.splitlines())
-
-
-def test_help_list_and_first_render_print_no_banner_and_no_precision_warnings(tmp_path):
-    """A clean first run (no kernel cache) compiles without Taichi precision warnings; stdout carries
-    only what was asked for."""
+def test_help_list_and_first_render_in_a_fresh_process_print_no_banner_and_no_precision_warnings(tmp_path):
+    """`python -m demo` in fresh processes: help and list answer, and a clean first run (no kernel cache)
+    compiles without Taichi precision warnings; stdout carries only what was asked for."""
     env = {**os.environ, "TI_OFFLINE_CACHE": "0"}
     run = lambda *a: subprocess.run([sys.executable, "-m", "demo", *a], cwd=REPO, capture_output=True, text=True,
                                     env=env, timeout=300)
     helped = run("render", "--help")
+    assert helped.returncode == 0 and "(default: 1280x720)" in " ".join(helped.stdout.split())
     assert "[Taichi]" not in helped.stdout
     options = " ".join(helped.stdout.split()).split(" --")
     assert all(option.count("(default") <= 1 for option in options), helped.stdout
     assert "(default: None)" not in helped.stdout
-    assert "[Taichi]" not in run("list").stdout
+    listed = run("list")
+    assert listed.returncode == 0 and any(line.startswith("stiffness_sweep ") for line in listed.stdout.splitlines())
+    assert "[Taichi]" not in listed.stdout
     rendered = run("render", "colouring", "--size", "64x48", "--video", "none", "--out", str(tmp_path / "c"))
     assert rendered.returncode == 0, rendered.stderr
     assert "precision" not in rendered.stdout + rendered.stderr, rendered.stderr
