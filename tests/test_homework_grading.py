@@ -56,21 +56,42 @@ BUGS = [
 ]
 
 
-@pytest.mark.parametrize("task, file, right, wrong, words", BUGS, ids=[f"{b[0]}-{n}" for n, b in enumerate(BUGS)])
-def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path, task, file, right, wrong, words):
-    """Each bug (one per task, and one per term of f_i and H_i) loses points in its own task only, and the
-    first failure names what is wrong. The other tasks are graded with the reference solution in place;
-    their trees are the solution's, so the grader answers them from the solution's run."""
-    submission = as_solution(starter, tmp_path / "bugged")
+def plant(submission: Path, file: str, right: str, wrong: str) -> Path:
+    """The submission with `right` (found exactly once in `file`) replaced by the bug `wrong`."""
     text = (submission / file).read_text()
     assert text.count(right) == 1, f"the solution no longer contains {right!r}: update BUGS"
     (submission / file).write_text(text.replace(right, wrong))
-    grades = {g.task: g for g in grader.grade(submission)}
+    return submission
+
+
+def assert_costs_only_its_task(grades, task, words):
+    """The bug of `task` loses points there only, and the first failure names it in one short line."""
+    grades = {g.task: g for g in grades}
     for other in homework.TASKS:
         if other.id != task:
-            assert grades[other.id].earned == other.points, (other.id, grades[other.id])
+            assert grades[other.id].earned == other.points, (task, other.id, grades[other.id])
     assert grades[task].earned < grades[task].points and words in grades[task].reason, grades[task]
     assert "\n" not in grades[task].reason and len(grades[task].reason) <= 160
+
+
+def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path):
+    """One bug (the elasticity term of f_i halved) loses points in its own task only, and the first failure
+    names what is wrong. The other tasks are graded with the reference solution in place; their trees are
+    the solution's, so the grader answers them from the solution's run."""
+    task, file, right, wrong, words = BUGS[5]
+    submission = plant(as_solution(starter, tmp_path / "bugged"), file, right, wrong)
+    assert_costs_only_its_task(grader.grade(submission), task, words)
+
+
+@pytest.mark.slow
+def test_every_planted_bug_costs_only_its_task(grader, starter, tmp_path):
+    """Each bug (one per task, and one per term of f_i and H_i) in its own submission, the class graded
+    in parallel: each loses points in its own task only, and its first failure names what is wrong."""
+    klass = {f"bug{n}": plant(as_solution(starter, tmp_path / f"bug{n}"), file, right, wrong)
+             for n, (_, file, right, wrong, _) in enumerate(BUGS)}
+    book = grader.grade_all(klass)
+    for n, (task, _, _, _, words) in enumerate(BUGS):
+        assert_costs_only_its_task(book[f"bug{n}"], task, words)
 
 
 def test_a_class_graded_in_parallel_runs_each_distinct_task_once_and_reports_in_order(grader, starter, tmp_path,
