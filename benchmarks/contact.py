@@ -5,8 +5,8 @@ Four measurements, all float64 on the CPU, ratios taken within one run (issue 17
     bodies issue 17 names) dropped into a fixed open box of five slabs, friction 0.3: median step time, full
     detections and refreshes of the bounds per step and active contacts (pairs closer than the radius)
     once settled: stepped until the mean vertex speed is under 1 mm/s, at most 24 s (settle_s: how long it
-    took; mean_speed: that speed in m/s then; 27 balls took 10-14 s, and a pile still moving detects about
-    once in ten steps, which would be timed as well), against the same bodies set apart above the
+    took; mean_speed: that speed in m/s after the timed steps; a pile still moving detects about once in
+    ten steps, which would be timed as well), against the same bodies set apart above the
     box with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
     ratios of the steps taken in turn); and the same piles of cubes as wide (2 x 2 x 2 cells, 48 tets
     each), bodies that are nearly all surface;
