@@ -112,7 +112,10 @@ def main(argv=None):
     rows = []
     jobs = [("sweep", cells, precision) for precision in ("float64", "float32") for cells in sizes]
     jobs = [job for job in jobs + [("contact", None, None), ("pile", None, None)] if job[0] in args.parts]
-    for kind, cells, precision in progress(jobs, desc=f"cuda ({args.arch})", disable=args.no_progress):
+    title = f"VBD on {args.arch} (CUDA)" if args.arch == "gpu" else "VBD on the CPU"
+    gpu = f", GPU: {gpu_name() or 'unknown'}" if args.arch == "gpu" else ""
+    bar = progress(jobs, desc=f"cuda ({args.arch})", disable=args.no_progress)
+    for done, (kind, cells, precision) in enumerate(bar, start=1):
         if kind == "sweep":
             rows.append(measure_sweep(solver, cells, precision, args.min_seconds))
         elif kind == "contact":
@@ -120,14 +123,14 @@ def main(argv=None):
                 rows.append(dict(measure(solver, args.cells, args.min_seconds), precision="float64"))
         else:
             rows.append(measure_falling_pile(solver, args.pile, args.steps, args.min_seconds))
-    for r in rows:
-        r["arch"] = args.arch
-    text = table(rows, [c for c in COLUMNS if any(c in r for r in rows)], title=f"VBD on {args.arch} (CUDA)" if args.arch == "gpu" else "VBD on the CPU")
+        for r in rows:
+            r["arch"] = args.arch
+        text = table(rows, [c for c in COLUMNS if any(c in r for r in rows)], title=title)
+        write_csv(f"{out}/cuda.csv", rows, COLUMNS)     # after every measurement: a GPU lent for minutes
+        with open(f"{out}/summary.md", "w") as fh:       # may be taken back before the last one
+            so_far = "" if done == len(jobs) else f" (so far: {done} of {len(jobs)} measurements)"
+            fh.write(f"{provenance()}{gpu}{so_far}\n\n{text}\n")
     print(text)
-    write_csv(f"{out}/cuda.csv", rows, COLUMNS)
-    with open(f"{out}/summary.md", "w") as fh:
-        gpu = f", GPU: {gpu_name() or 'unknown'}" if args.arch == "gpu" else ""
-        fh.write(f"{provenance()}{gpu}\n\n{text}\n")
     print_written(args, OUTPUTS)
     return 0
 

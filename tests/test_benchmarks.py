@@ -102,7 +102,8 @@ def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, a
     assert int(pile["bodies"]) == 8 and int(pile["contacts"]) > 0, "the bottom layer rests on the box"
     assert 0 < float(pile["min_separation_mm"]) < 5, "closer than the 5 mm radius, never touching"
     assert float(pile["step_ms"]) > 0 and float(pile["detections_per_step"]) >= 0
-    assert "| falling pile |" in (tmp_path / "summary.md").read_text()
+    summary = (tmp_path / "summary.md").read_text()
+    assert "| falling pile |" in summary and "so far" not in summary
 
 
 def test_cuda_without_a_gpu_says_so_in_one_line(capsys, cuda_present, tmp_path):
@@ -609,3 +610,20 @@ def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert capsys.readouterr().out.strip().splitlines()[-1] == \
         f"wrote interactive_fps.csv, summary.md into {tmp_path}"
     assert len(rows(tmp_path / "interactive_fps.csv")) == 2
+
+
+@pytest.mark.backend
+def test_cuda_writes_its_results_after_every_measurement(tmp_path, arch, monkeypatch):
+    """A run stopped part way (a GPU lent for minutes, taken back) leaves the rows measured so far, and its
+    summary says how far it got."""
+    cuda = _module("cuda")
+
+    def stop(*args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cuda, "measure_apart", stop)
+    with pytest.raises(KeyboardInterrupt):
+        cuda.main(["--quick", "--arch", arch, "--no-progress", "--parts", "sweep", "contact", "--out", str(tmp_path)])
+    assert [(r["precision"], r["tets"]) for r in rows(tmp_path / "cuda.csv")] == [
+        ("float64", "144"), ("float64", "1152"), ("float32", "144"), ("float32", "1152")]
+    assert "(so far: 4 of 5 measurements)" in (tmp_path / "summary.md").read_text().splitlines()[0]
