@@ -130,3 +130,21 @@ def test_boxes_within_finds_every_enclosed_box_of_a_moving_pair():
     inner, outer = _boxes_within(lower, upper, moving, rows=64)
     assert within.sum() > 20
     assert sorted(zip(inner.tolist(), outer.tolist())) == sorted(zip(*(k.tolist() for k in np.nonzero(within))))
+
+
+def test_a_crossing_between_small_bodies_is_seen_beside_a_huge_one():
+    """Whether a signed volume counts as coplanar is judged at the scale of the edge and triangle tested,
+    not of the scene's longest edge: a 1,000 m slab (two triangles a face) hid two interpenetrating 1 cm
+    cubes, one turned."""
+    from scipy.spatial.transform import Rotation
+
+    from solver.vbd.contact_state import surface_crossing
+
+    slab = solver.box_mesh(size=(1000.0, 1000.0, 0.1), cells=(1, 1, 1), origin=(-500.0, -500.0, -0.1))
+    a = solver.box_mesh(size=(0.01,) * 3, cells=(1, 1, 1), origin=(0.0, 0.0, 0.5))
+    turn = Rotation.from_euler("xyz", [20, 30, 40], degrees=True).as_matrix()
+    b = solver.TetMesh((a.vertices - [0.005, 0.005, 0.505]) @ turn.T + [0.004, 0.003, 0.505], a.tets)
+    mesh = solver.merge_meshes([slab, a, b])
+    free = np.arange(mesh.n_vertices) >= slab.n_vertices
+    bodies = body_labels(mesh.tets, mesh.n_vertices)
+    assert surface_crossing(mesh.vertices, surface_primitives(mesh.tets), bodies, free, True) == (1, 2)

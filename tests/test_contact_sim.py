@@ -223,6 +223,25 @@ print(json.dumps(dict(steps=steps, contacts=contacts, compiled=compiled)))
     assert result["compiled"] == [], result
 
 
+def _tangled_body():
+    """One body that intersects itself: a cube whose corner is welded to the centre vertex of another,
+    so that it reaches out through that cube's faces."""
+    a = _cube((0.0, 0.0, 0.0), size=0.1, cells=2)
+    centre = int(np.argmin(np.linalg.norm(a.vertices - 0.05, axis=1)))
+    b = _cube((0.05, 0.05, 0.05), size=0.1, cells=1)
+    corner = int(np.argmin(np.linalg.norm(b.vertices - 0.05, axis=1)))
+    keep = np.arange(b.n_vertices) != corner
+    index = np.full(b.n_vertices, centre)
+    index[keep] = a.n_vertices + np.arange(keep.sum())
+    return solver.TetMesh(np.vstack([a.vertices, b.vertices[keep]]), np.vstack([a.tets, index[b.tets]]))
+
+
+def test_a_body_that_intersects_itself_is_one_body_and_accepted_without_self_contact():
+    tangled = _tangled_body()
+    assert len(np.unique(solver.Simulation(tangled, SOFT).bodies)) == 1
+    solver.Simulation(tangled, SOFT, contact=solver.Contact(self_contact=False))
+
+
 def test_bad_contact_input_is_one_line():
     a, b = _cube((0.0, 0.0, 0.0)), _cube((0.15, 0.0, 0.0))
     mesh = solver.merge_meshes([a, b])
@@ -243,6 +262,8 @@ def test_bad_contact_input_is_one_line():
                                                         _cube((0.0, 0.0, 0.0), size=0.3, cells=3)]), SOFT,
                                    contact=solver.Contact()), "body 0 lies inside body 1"),
     ]
+    cases.append((lambda: solver.Simulation(_tangled_body(), SOFT, contact=solver.Contact()),
+                  "body 0 intersects itself"))
     sim = solver.Simulation(mesh, SOFT, contact=solver.Contact(friction=0.3))
     cases += [(lambda: setattr(sim, "contact", 1.0), "contact must be a solver.Contact"),
               (lambda: sim.newton_reference(), "no friction"),

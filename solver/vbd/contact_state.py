@@ -50,7 +50,7 @@ from . import contact_sweep, implicit_euler
 from .layout import STATE_ROWS, X, X_N
 from .vertex_solve import serial_sweep, unrolled_colors
 
-COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (longest edge)^3 count as coplanar
+COPLANAR_ROUNDOFF = 1e-10   # `surface_crossing`: signed volumes below this x (the pair's longest edge)^3 are coplanar
 NEAR_HORIZON = 0.02         # x radius: the sweep's horizon (module docstring); measured 0.01-0.2 in a resting pile
 KINEMATIC_STALL = 1e-3      # `move_kinematic`: a move gaining less than this x the distance left is blocked
 
@@ -324,6 +324,9 @@ class ContactStage:
         crossing = surface_crossing(x, self.detector.surface, self.bodies, self.free, self.contact.self_contact)
         if crossing is not None:
             a, b = crossing
+            if a == b:
+                raise ConfigError(f"body {a} intersects itself (a surface edge passes through one of its triangles); "
+                                  "untangle it before simulating, or use self_contact=False")
             raise ConfigError(f"bodies {a} and {b} intersect (a surface edge passes through a triangle, distance 0 m); "
                               "move them apart before simulating")
         self.detect(state, X)
@@ -397,8 +400,6 @@ def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarra
     (beyond COPLANAR_ROUNDOFF) on either side of the triangle's plane and the edge's line passes inside
     the triangle."""
     triangles, edges = surface.triangles, surface.edges
-    half = np.linalg.norm(x[edges[:, 1]] - x[edges[:, 0]], axis=1).max() / 2
-    floor = COPLANAR_ROUNDOFF * (2 * half) ** 3     # coplanar up to round-off (one flat face): not a crossing
 
     def six_volume(a, b, c, d):
         return np.einsum("ka,ka->k", np.cross(b - a, c - a), d - a)
@@ -413,6 +414,8 @@ def surface_crossing(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarra
         p, q = x[edges[e, 0]], x[edges[e, 1]]
         a, b, c = (x[triangles[t, k]] for k in range(3))
         vp, vq = six_volume(a, b, c, p), six_volume(a, b, c, q)
+        scale = np.max([np.linalg.norm(u - v, axis=1) for u, v in ((p, q), (a, b), (b, c), (c, a))], axis=0)
+        floor = COPLANAR_ROUNDOFF * scale ** 3      # coplanar up to round-off (one flat face): not a crossing
         sides = (vp * vq < 0) & (np.abs(vp) > floor) & (np.abs(vq) > floor)
         around = np.stack([six_volume(p, q, a, b), six_volume(p, q, b, c), six_volume(p, q, c, a)], axis=1)
         hit = np.flatnonzero(sides & ((around >= 0).all(axis=1) | (around <= 0).all(axis=1)))
