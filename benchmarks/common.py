@@ -106,7 +106,7 @@ def parser(description: str, default_out: str, quick: str = "") -> argparse.Argu
     p = _Parser(prog=f"python -m benchmarks.{name}", description=description, formatter_class=_HelpFormatter,
                 quick_text=quick)
     p.set_defaults(results_folder=default_out)
-    p.add_argument("--out", default=None, help=f"folder for the CSV and PNG files (default: {default_out}; with "
+    p.add_argument("--out", default=None, help=f"folder for the result files (default: {default_out}; with "
                                                  "--quick a new scratch folder in the system's temporary folder)")
     p.add_argument("--overwrite", action="store_true", help="replace result files already in --out")
     p.add_argument("--quick", action="store_true")

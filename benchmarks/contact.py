@@ -1,12 +1,13 @@
 """Contact cost: step time against active contacts, detection against one sweep, the sweep with and without contact.
 
-Four measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
+Three measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
   * piles of 1, 8, 27 and 64 soft balls (the sphere asset voxelised at resolution 3, 114 tets each: the
     bodies issue 17 names) dropped into a fixed open box of five slabs, friction 0.3: median step time, full
     detections and refreshes of the bounds per step and active contacts (pairs closer than the radius)
-    once settled: stepped until the mean vertex speed is under 1 mm/s, at most 24 s (settle_s: how long it
-    took; mean_speed: that speed in m/s after the timed steps; a pile still moving detects about once in
-    ten steps, which would be timed as well), against the same bodies set apart above the
+    once settled: stepped until the mean vertex speed is under 1 mm/s, checked every second, at most
+    --settle steps (settle_s: how long it took, in whole seconds; at the cap the pile did not settle, as
+    under --quick; mean_speed: that speed in m/s after the timed steps; a pile still moving detects about
+    once in ten steps, which would be timed as well), against the same bodies set apart above the
     box with no gravity (target: at most 2x), the two scenes stepped in turn (step_ratio: the median of the
     ratios of the steps taken in turn); and the same piles of cubes as wide (2 x 2 x 2 cells, 48 tets
     each), bodies that are nearly all surface;
@@ -84,7 +85,8 @@ def pile_scene(solver, k, apart, balls=False):
 def _steps_in_turn(sims, steps):
     """Step each simulation in turn, `steps` times: per simulation the median seconds of a step and the mean
     numbers of full detections and of refreshes per step (the contact stage's counters: each step starts
-    with two refreshes, at x_n and at the clamped guess, and every iteration after a bound hit with one;
+    with a refresh at its clamped guess, and one at x_n first where the guess needs clamping; every
+    iteration after a bound hit adds one;
     a refresh turns into a full detection when the positions moved too far); and the median over the
     rounds of the first simulation's step over the second's. Taken in turn, a drift of the machine's
     speed moves both alike."""

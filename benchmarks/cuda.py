@@ -4,19 +4,20 @@ The CPU's numbers are in benchmarks/results/throughput and benchmarks/results/co
 scenes on the backend --arch names (gpu: CUDA, the default; cpu: the same code on the CPU, which is what
 the tests run). Every timing waits for the kernels to finish (`ti.sync()`), since a CUDA launch returns
 before its work is done. Three measurements, float64 unless a row says float32:
-  * sweep: ns per tet per VBD iteration of benchmarks.throughput's boxes (12,000 to 1,008,000 tets), float64
+  * sweep: ns per tet per VBD iteration of benchmarks.throughput's boxes (1,152 to 1,008,000 tets), float64
     and float32, and the seconds of the first iteration (the kernels' compile for that backend);
   * contact: benchmarks.contact's 8 bodies of 3,072 tets set apart (nothing within query_radius), the
     sweep with contact on against contact=None (issue 17's target: at most 1.25x), and one detection
     against one sweep there and with the bodies touching (1.5 mm gaps);
   * pile: k^3 balls (benchmarks.contact's, 114 tets each; k = 21: 9,261 balls and 1.11M tets with the box)
-    in layers 2 cm apart inside the fixed open box, friction 0.3, 20 iterations a step, falling for --steps
-    steps of 1/60 s: median seconds of the last half of the steps, full detections and refreshes of the
+    in layers 2 cm apart inside the fixed open box, friction 0.3, 20 iterations a step, falling for one
+    untimed step (the compile) and --steps timed steps of 1/60 s: median seconds of the last half of them, full detections and refreshes of the
     bounds per step, active contacts and the least separation at the end, one detection against one sweep.
 
     python -m benchmarks.cuda --out benchmarks/results/cuda           # on a machine with a CUDA GPU
     python -m benchmarks.cuda --quick --arch cpu --out /tmp/cuda      # the same code, small, on the CPU
 """
+import os
 import subprocess
 import time
 
@@ -57,6 +58,7 @@ def measure_falling_pile(solver, k, steps, min_seconds):
     sim = solver.Simulation(mesh, solver.Material(**SOFT), dt=1 / 60, fixed=fixed, iterations=20,
                             contact=solver.Contact(stiffness=1e4, radius=0.005, friction=0.3))
     stage = sim._contact_stage
+    sim.step()                      # compiles the contact kernels: not timed
     seconds = []
     for i in range(steps):
         if i == steps // 2:
@@ -73,6 +75,27 @@ def measure_falling_pile(solver, k, steps, min_seconds):
                 refreshes_per_step=(stage.refreshes - counters[1]) / timed,
                 step_ms=float(np.median(seconds[steps // 2:])) * 1e3, detect_ms=detect_s * 1e3,
                 sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
+
+
+def measure_all(solver, args, jobs, out, title, gpu, bar):
+    """Run the jobs, writing the CSV and summary after each (see main)."""
+    rows = []
+    for done, (kind, cells, precision) in enumerate(bar, start=1):
+        if kind == "sweep":
+            rows.append(measure_sweep(solver, cells, precision, args.min_seconds))
+        elif kind == "contact":
+            for measure in (measure_apart, measure_touching):
+                rows.append(dict(measure(solver, args.cells, args.min_seconds), precision="float64"))
+        else:
+            rows.append(measure_falling_pile(solver, args.pile, args.steps, args.min_seconds))
+        for r in rows:
+            r["arch"] = args.arch
+        text = table(rows, [c for c in COLUMNS if any(c in r for r in rows)], title=title)
+        write_csv(f"{out}/cuda.csv", rows, COLUMNS)     # after every measurement: a GPU lent for minutes
+        with open(f"{out}/summary.md", "w") as fh:       # may be taken back before the last one
+            so_far = "" if done == len(jobs) else f" (so far: {done} of {len(jobs)} measurements)"
+            fh.write(f"{provenance()}{gpu}{so_far}\n\n{text}\n")
+    print(text)
 
 
 def gpu_name() -> str:
@@ -102,35 +125,27 @@ def main(argv=None):
     ti.set_logging_level(ti.ERROR)      # the CUDA probe's own warning: the line below says what happened
     if args.arch == "gpu" and not is_arch_supported(ti.cuda):
         fail("no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
-    sizes = [c for c in (QUICK_SIZES if args.quick else FULL_SIZES) if 6 * np.prod(c) <= args.max_tets]
-    if not sizes:
-        p.error(f"--max-tets {args.max_tets} leaves no box: the smallest has {6 * np.prod(FULL_SIZES[0]):,} tets")
+    candidates = QUICK_SIZES if args.quick else FULL_SIZES
+    sizes = [c for c in candidates if 6 * np.prod(c) <= args.max_tets]
+    if not sizes and "sweep" in args.parts:
+        p.error(f"--max-tets {args.max_tets} leaves no box: the smallest has {6 * np.prod(candidates[0]):,} tets")
     out = output_folder(args, OUTPUTS)
     init_taichi(arch=args.arch)
     import solver
 
-    rows = []
     jobs = [("sweep", cells, precision) for precision in ("float64", "float32") for cells in sizes]
     jobs = [job for job in jobs + [("contact", None, None), ("pile", None, None)] if job[0] in args.parts]
     title = f"VBD on {args.arch} (CUDA)" if args.arch == "gpu" else "VBD on the CPU"
     gpu = f", GPU: {gpu_name() or 'unknown'}" if args.arch == "gpu" else ""
     bar = progress(jobs, desc=f"cuda ({args.arch})", disable=args.no_progress)
-    for done, (kind, cells, precision) in enumerate(bar, start=1):
-        if kind == "sweep":
-            rows.append(measure_sweep(solver, cells, precision, args.min_seconds))
-        elif kind == "contact":
-            for measure in (measure_apart, measure_touching):
-                rows.append(dict(measure(solver, args.cells, args.min_seconds), precision="float64"))
-        else:
-            rows.append(measure_falling_pile(solver, args.pile, args.steps, args.min_seconds))
-        for r in rows:
-            r["arch"] = args.arch
-        text = table(rows, [c for c in COLUMNS if any(c in r for r in rows)], title=title)
-        write_csv(f"{out}/cuda.csv", rows, COLUMNS)     # after every measurement: a GPU lent for minutes
-        with open(f"{out}/summary.md", "w") as fh:       # may be taken back before the last one
-            so_far = "" if done == len(jobs) else f" (so far: {done} of {len(jobs)} measurements)"
-            fh.write(f"{provenance()}{gpu}{so_far}\n\n{text}\n")
-    print(text)
+    try:
+        measure_all(solver, args, jobs, out, title, gpu, bar)
+    except KeyboardInterrupt:
+        bar.close()
+        if not os.path.exists(f"{out}/cuda.csv"):
+            fail("interrupted before the first measurement finished; nothing was written")
+        fail(f"interrupted: {out}/cuda.csv and summary.md hold the measurements finished before it "
+             "(the summary's first line says how many)")
     print_written(args, OUTPUTS)
     return 0
 

@@ -55,7 +55,7 @@ GENERATED = re.compile(r"(<!-- begin generated: (?P<key>[\w.\-]+) -->\n)(?P<body
 INLINE = re.compile(r"(<!--v:(?P<key>[\w.\-]+)-->)(?P<body>.*?)(<!--/v-->)")
 EXCERPT = re.compile(r"(<!-- excerpt: (?P<path>\S+) (?P<name>[\w.]+) -->\n```python\n)(?P<body>.*?)(\n```)", re.S)
 RESULT = re.compile(r"(<!--n:(?P<spec>[^>\n]*?)-->)(?P<body>.*?)(<!--/n-->)")
-INCLUDE = re.compile(r"(<!-- begin include: (?P<path>\S+) -->\n)(?P<body>.*?)(\n<!-- end include -->)", re.S)
+INCLUDE = re.compile(r"(<!-- begin include: (?P<path>\S+) -->\n)(?P<body>.*?)\n?(<!-- end include -->)", re.S)
 SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
 
 
@@ -164,7 +164,7 @@ def fill_generated(text: str, numbers: dict, root: Path = REPO_ROOT, folder: Pat
     def include(match):
         if not (root / match["path"]).is_file():
             return match.group(0)
-        return match.group(1) + included_text(match["path"], folder, root) + match.group(4)
+        return match.group(1) + included_text(match["path"], folder, root) + "\n" + match.group(4)
 
     text = INLINE.sub(from_numbers, GENERATED.sub(from_numbers, text))
     return INCLUDE.sub(include, RESULT.sub(from_results, text))

@@ -409,6 +409,7 @@ BAD_VALUES = [
     ("render_speed", ["--arch", "tpu"], "--arch: invalid choice: 'tpu'"),
     ("cuda", ["--arch", "metal"], "--arch: invalid choice: 'metal'"),
     ("cuda", ["--max-tets", "0"], "--max-tets: expected a positive whole number"),
+    ("cuda", ["--arch", "cpu", "--max-tets", "100"], "--max-tets 100 leaves no box: the smallest has 144 tets"),
     ("cuda", ["--pile", "1.5"], "--pile: expected a positive whole number"),
     ("cuda", ["--steps", "-1"], "--steps: expected a positive whole number"),
     ("cuda", ["--cells", "x"], "--cells: expected a positive whole number"),
@@ -613,7 +614,7 @@ def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
 
 
 @pytest.mark.backend
-def test_cuda_writes_its_results_after_every_measurement(tmp_path, arch, monkeypatch):
+def test_cuda_writes_its_results_after_every_measurement(tmp_path, capsys, arch, monkeypatch):
     """A run stopped part way (a GPU lent for minutes, taken back) leaves the rows measured so far, and its
     summary says how far it got."""
     cuda = _module("cuda")
@@ -622,8 +623,9 @@ def test_cuda_writes_its_results_after_every_measurement(tmp_path, arch, monkeyp
         raise KeyboardInterrupt
 
     monkeypatch.setattr(cuda, "measure_apart", stop)
-    with pytest.raises(KeyboardInterrupt):
-        cuda.main(["--quick", "--arch", arch, "--no-progress", "--parts", "sweep", "contact", "--out", str(tmp_path)])
+    _exits_with_one_line(capsys, lambda: cuda.main(["--quick", "--arch", arch, "--no-progress", "--parts", "sweep",
+                                                    "contact", "--out", str(tmp_path)]),
+                         "interrupted: ")
     assert [(r["precision"], r["tets"]) for r in rows(tmp_path / "cuda.csv")] == [
         ("float64", "144"), ("float64", "1152"), ("float32", "144"), ("float32", "1152")]
     assert "(so far: 4 of 5 measurements)" in (tmp_path / "summary.md").read_text().splitlines()[0]

@@ -113,6 +113,18 @@ def _results_project(tmp_path):
     return notes, chapter
 
 
+def test_an_empty_include_is_stale_and_filled(tmp_path):
+    """An include whose markers stand on adjacent lines (nothing copied yet) is reported by the check and
+    filled by the update, like one holding an old copy."""
+    notes, chapter = _results_project(tmp_path)
+    chapter.write_text("<!-- begin include: results/summary.md -->\n<!-- end include -->\n")
+    assert notes_sync.stale({}, notes, root=tmp_path) == [
+        "01-x.md: the copy of results/summary.md differs from the file; run python -m demo figures --only excerpts"]
+    notes_sync.update_notes({}, notes, root=tmp_path)
+    assert chapter.read_text().startswith("<!-- begin include: results/summary.md -->\n| a |")
+    assert notes_sync.stale({}, notes, root=tmp_path) == []
+
+
 def test_numbers_from_results_files_are_checked_and_filled(tmp_path):
     notes, chapter = _results_project(tmp_path)
     problems = notes_sync.stale({}, notes, root=tmp_path)
