@@ -98,17 +98,20 @@ def _random_boxes(rng, n, scale):
 
 
 @pytest.mark.parametrize("seed", range(20))
-def test_overlapping_boxes_finds_every_overlapping_pair_once(seed, monkeypatch):
+@pytest.mark.parametrize("large", [64, 2])
+def test_overlapping_boxes_finds_every_overlapping_pair_once(seed, large, monkeypatch):
     """The start-state check's candidates (`overlapping_boxes`) are exactly the brute-force overlapping pairs,
     each once and in order, also with boxes of very different sizes (a few large ones among many small,
-    as a wall among balls) and in chunks smaller than the result."""
+    as a wall among balls, on both sides) and in chunks smaller than the result."""
     from solver.vbd import contact_state
 
     monkeypatch.setattr(contact_state, "PAIR_CHUNK", 7)
+    monkeypatch.setattr(contact_state, "LARGE_BOXES", large)      # 2: the largest boxes outside the grid
     rng = np.random.default_rng(seed)
     lo_a, hi_a = _random_boxes(rng, 60, rng.choice([0.01, 0.1, 0.5]))
     lo_b, hi_b = _random_boxes(rng, 40, 0.05)
     lo_b[:3], hi_b[:3] = _random_boxes(rng, 3, 1.5)
+    lo_a[:2], hi_a[:2] = _random_boxes(rng, 2, 2.0)
     overlap = ((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None])).all(axis=2)
     chunks = list(contact_state.overlapping_boxes(lo_a, hi_a, lo_b, hi_b))
     i, j = (np.concatenate([c[k] for c in chunks] + [np.zeros(0, np.int64)]) for k in (0, 1))

@@ -345,46 +345,57 @@ class ContactStage:
 
 
 PAIR_CHUNK = 1 << 20        # `overlapping_boxes`: candidate pairs handled at a time (bounds the memory)
+LARGE_BOXES = 64            # `overlapping_boxes`: the largest boxes, compared with every box of the other side
 
 
 def overlapping_boxes(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray):
     """Yield, in chunks, the index pairs (i, j) (two (P,) int64 arrays) of boxes [lo_a[i], hi_a[i]] and
     [lo_b[j], hi_b[j]] (each (N, 3)) that overlap, every such pair exactly once, chunks in increasing
-    i * len(lo_b) + j. A uniform grid whose cell is twice the median box size (at least 1/256 of the
-    scene's extent, so that a few large boxes cannot fill millions of cells): each box is entered into
-    the cells it covers, pairs sharing a cell are candidates, and their boxes are compared exactly."""
+    i * len(lo_b) + j. The LARGE_BOXES largest boxes (a slab's triangles under small bodies) are compared
+    with every box of the other side; the others go into a uniform grid whose cell is twice the median box
+    size, or a quarter of the largest of them, so that each covers at most 5 x 5 x 5 cells: each is
+    entered into the cells it covers, pairs sharing a cell are candidates, and their boxes are compared
+    exactly."""
     lower, upper = np.minimum(lo_a.min(0), lo_b.min(0)), np.maximum(hi_a.max(0), hi_b.max(0))
-    size = np.concatenate([hi_a - lo_a, hi_b - lo_b]).max(axis=1)
-    cell = max(2 * float(np.median(size)), float((upper - lower).max()) / 256, 1e-300)
-    dims = np.floor((upper - lower) / cell).astype(np.int64) + 1
+    size_a, size_b = (hi_a - lo_a).max(axis=1), (hi_b - lo_b).max(axis=1)
+    size = np.sort(np.concatenate([size_a, size_b]))
+    largest_small = size[-LARGE_BOXES - 1] if len(size) > LARGE_BOXES else size[-1]
+    cell = max(2 * float(np.median(size)), float(largest_small) / 4, float((upper - lower).max()) / 2 ** 20, 1e-300)
+    dims = np.floor((upper - lower) / cell).astype(np.int64) + 1       # keys below 2^63
 
-    def entries(lo, hi):
-        """(cell key, box index) of every cell each box covers, sorted by key."""
-        c0 = np.floor((lo - lower) / cell).astype(np.int64)
-        extent = np.floor((hi - lower) / cell).astype(np.int64) - c0 + 1
+    def entries(lo, hi, small):
+        """(cell key, box index) of every cell each small box covers, sorted by key."""
+        c0 = np.floor((lo[small] - lower) / cell).astype(np.int64)
+        extent = np.floor((hi[small] - lower) / cell).astype(np.int64) - c0 + 1
         counts = extent.prod(axis=1)
-        box = np.repeat(np.arange(len(lo)), counts)
+        index = np.flatnonzero(small)
+        box = np.repeat(np.arange(len(index)), counts)
         k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
         ny, nz = extent[box, 1], extent[box, 2]
         c = c0[box] + np.stack([k // (ny * nz), (k // nz) % ny, k % nz], axis=1)
         key = (c[:, 0] * dims[1] + c[:, 1]) * dims[2] + c[:, 2]
         order = np.argsort(key, kind="stable")
-        return key[order], box[order]
+        return key[order], index[box[order]]
 
-    key_a, box_a = entries(lo_a, hi_a)
-    key_b, box_b = entries(lo_b, hi_b)
+    def overlap(i, j):
+        keep = ((lo_a[i] <= hi_b[j]) & (lo_b[j] <= hi_a[i])).all(axis=1)
+        return np.unique(i[keep] * len(lo_b) + j[keep])
+
+    small_a, small_b = size_a <= largest_small, size_b <= largest_small
+    found = [overlap(np.repeat(i, len(lo_b)), np.arange(len(lo_b))) for i in np.flatnonzero(~small_a)]
+    found += [overlap(np.flatnonzero(small_a), np.full(small_a.sum(), j)) for j in np.flatnonzero(~small_b)]
+    key_a, box_a = entries(lo_a, hi_a, small_a)
+    key_b, box_b = entries(lo_b, hi_b, small_b)
     first, last = np.searchsorted(key_b, key_a, "left"), np.searchsorted(key_b, key_a, "right")
     counts = last - first
     ends = np.cumsum(counts)
-    found = []
     start = 0
     while start < len(key_a):
         stop = max(int(np.searchsorted(ends, ends[start] - counts[start] + PAIR_CHUNK, "right")), start + 1)
         n = counts[start:stop]
         i = np.repeat(box_a[start:stop], n)
-        j = box_b[np.repeat(first[start:stop], n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
-        overlap = ((lo_a[i] <= hi_b[j]) & (lo_b[j] <= hi_a[i])).all(axis=1)
-        found.append(np.unique(i[overlap] * len(lo_b) + j[overlap]))
+        found.append(overlap(i, box_b[np.repeat(first[start:stop], n) + np.arange(n.sum())
+                                      - np.repeat(np.cumsum(n) - n, n)]))
         start = stop
     pairs = np.unique(np.concatenate(found + [np.zeros(0, np.int64)]))
     for chunk in range(0, len(pairs), PAIR_CHUNK):
@@ -441,15 +452,23 @@ def enclosed_body(x: np.ndarray, surface, bodies: np.ndarray, free: np.ndarray):
     moving[bodies[free]] = True
     first = np.unique(bodies, return_index=True)[1]
     tri_body = bodies[triangles[:, 0]]
-    for inner, outer in zip(*_boxes_within(lower, upper, moving)):
-        a, b, c = (x[triangles[tri_body == outer, k]] - x[first[inner]] for k in range(3))
-        la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
-        volume = np.einsum("ka,ka->k", a, np.cross(b, c))
-        den = la * lb * lc + np.einsum("ka,ka->k", a, b) * lc + np.einsum("ka,ka->k", b, c) * la \
-            + np.einsum("ka,ka->k", c, a) * lb
-        if abs(np.arctan2(volume, den).sum() / (2 * np.pi)) > 0.5:
-            return int(inner), int(outer)
-    return None
+    inner, outer = _boxes_within(lower, upper, moving)
+    inside = np.zeros(len(inner), dtype=bool)
+    by_outer = np.argsort(outer, kind="stable")
+    groups = np.split(by_outer, np.flatnonzero(np.diff(outer[by_outer])) + 1) if len(inner) else []
+    for rows in groups:                  # every body nested in the box of one outer body, in chunks
+        corners = x[triangles[tri_body == outer[rows[0]]]]                  # (T, 3, 3)
+        step = max(1, PAIR_CHUNK // len(corners))
+        for chunk in range(0, len(rows), step):
+            r = rows[chunk:chunk + step]
+            a, b, c = (corners[None, :, k] - x[first[inner[r]]][:, None] for k in range(3))    # (n, T, 3)
+            la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
+            volume = np.einsum("nta,nta->nt", a, np.cross(b, c))
+            den = la * lb * lc + np.einsum("nta,nta->nt", a, b) * lc + np.einsum("nta,nta->nt", b, c) * la \
+                + np.einsum("nta,nta->nt", c, a) * lb
+            inside[r] = np.abs(np.arctan2(volume, den).sum(axis=1) / (2 * np.pi)) > 0.5
+    hit = np.flatnonzero(inside)
+    return (int(inner[hit[0]]), int(outer[hit[0]])) if len(hit) else None
 
 
 def _boxes_within(lower: np.ndarray, upper: np.ndarray, moving: np.ndarray, rows: int = 1024):
