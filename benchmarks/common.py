@@ -160,12 +160,17 @@ def positive(kind):
     return parse
 
 
+def _float(text):
+    """float(text), or None for text that is no number."""
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
 def fraction(text):
     """An argparse type: a fraction greater than 0 and at most 1."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = None
+    value = _float(text)
     if value is None or not 0.0 < value <= 1.0:
         raise argparse.ArgumentTypeError(f"expected a fraction greater than 0 and at most 1, got {text!r}")
     return value
@@ -175,10 +180,7 @@ def time_step(text):
     """An argparse type: a time step in seconds within the range a Simulation accepts."""
     from solver.vbd.settings import DT_RANGE
 
-    try:
-        value = float(text)
-    except ValueError:
-        value = None
+    value = _float(text)
     if value is None or not DT_RANGE[0] <= value <= DT_RANGE[1]:
         raise argparse.ArgumentTypeError(f"expected a time step between {DT_RANGE[0]:g} and {DT_RANGE[1]:g} "
                                          f"seconds, got {text!r}")
@@ -187,10 +189,7 @@ def time_step(text):
 
 def spectral_radius(text):
     """An argparse type: a Chebyshev rho in (0, 1)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = None
+    value = _float(text)
     if value is None or not 0.0 < value < 1.0:
         raise argparse.ArgumentTypeError(f"expected a Chebyshev rho between 0 and 1 (exclusive), got {text!r}")
     return value

@@ -11,8 +11,9 @@ before its work is done. Three measurements, float64 unless a row says float32:
     against one sweep there and with the bodies touching (1.5 mm gaps);
   * pile: k^3 balls (benchmarks.contact's, 114 tets each; k = 21: 9,261 balls and 1.11M tets with the box)
     in layers 2 cm apart inside the fixed open box, friction 0.3, 20 iterations a step, falling for one
-    untimed step (the compile) and --steps timed steps of 1/60 s: median seconds of the last half of them, full detections and refreshes of the
-    bounds per step, active contacts and the least separation at the end, one detection against one sweep.
+    untimed step (the compile) and --steps timed steps of 1/60 s: median seconds of the last half of them,
+    full detections and refreshes of the bounds per step, active contacts and the least separation at the
+    end, one detection against one sweep.
 
     python -m benchmarks.cuda --out benchmarks/results/cuda           # on a machine with a CUDA GPU
     python -m benchmarks.cuda --quick --arch cpu --out /tmp/cuda      # the same code, small, on the CPU

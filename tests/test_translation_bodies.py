@@ -123,9 +123,10 @@ def test_the_correction_never_increases_G_and_keeps_every_vertex_within_its_boun
 
 
 def test_the_sums_are_taken_in_a_fixed_order_so_that_runs_repeat_bit_for_bit():
-    """On every backend F_b and D_b are the sums of the vertices' terms. On the CPU each body's F_b and D_b are summed from its vertices' terms kept per vertex, one body on
-    one thread, whatever order the threads computed the terms in; two runs of a small pile with contact
-    then give the same positions bit for bit (atomic float adds made long piles differ between runs)."""
+    """On every backend F_b and D_b are the sums of the vertices' terms. On the CPU each body's F_b and D_b
+    are summed from its vertices' terms kept per vertex, one body on one thread, whatever order the threads
+    computed the terms in; two runs of a small pile with contact then give the same positions bit for bit
+    (atomic float adds made long piles differ between runs; CUDA keeps them, for speed)."""
     sim, _ = _two_cubes_on_a_slab(0.002, contact=solver.Contact(stiffness=1e3, radius=0.005))
     sim.set_positions(sim.positions + np.random.default_rng(3).normal(0, 1e-4, sim.positions.shape)
                       * sim.free_mask[:, None])

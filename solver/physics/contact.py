@@ -45,7 +45,8 @@ class Contact:
     the distance within which pairs are collected (> radius; None: 3 radius). friction: Coulomb mu,
     dimensionless. friction_speed: m/s, below which friction is smoothed. self_contact: pairs within a
     body too, between primitives that share no vertex and were farther apart than query_radius at rest
-    (closer ones, such as the turns of a body modelled tightly coiled, are never paired). detection_interval: iterations between checks of whether a pair the last detection missed
+    (closer ones, such as the turns of a body modelled tightly coiled, are never paired).
+    detection_interval: iterations between checks of whether a pair the last detection missed
     may have come within the radius, and if so a new detection (>= 1). bound_relaxation: g in (0, 1/2), a
     vertex moves at most g times its distance to its closest pair between refreshes of the bounds.
     """
