@@ -50,3 +50,45 @@ def is_arch_supported(arch) -> bool:
     from importlib import import_module
 
     return bool(import_module(f"{NAME}.lang.misc").is_arch_supported(arch))
+
+
+def memoise_source_positions() -> bool:
+    """Make kernel compiles faster, with the same result: memoise the text that Taichi's AST transform
+    writes for every syntax node it visits (``ASTTransformerContext.get_pos_info``: "File ..., line ...",
+    the source line and a ``^^^`` hint, each line wrapped by a new ``textwrap.TextWrapper``). It is made
+    again each time a node is visited, and a ``ti.func`` is transformed anew at every call site, so a
+    kernel that inlines the vertex solve once per colour builds the same texts hundreds of times: a
+    quarter of the time of its first call (an 8-colour sweep of 38,400 tets: 2.4 s, 1.8 s memoised).
+
+    The text depends only on the function's source (file, first line, lines) and the node's position
+    and kind, which together are the key. Returns whether the memo is in place (False where this
+    Taichi has no such method, e.g. another version or Quadrants: nothing is changed then)."""
+    from importlib import import_module
+
+    try:
+        context = import_module(f"{NAME}.lang.ast.ast_transformer_utils").ASTTransformerContext
+    except (ImportError, AttributeError):
+        return False
+    original = getattr(context, "get_pos_info", None)
+    if original is None:
+        return False
+    if getattr(original, "memoised", False):
+        return True
+    texts = {}
+
+    def get_pos_info(self, node):
+        source = self.__dict__.get("_source_key")
+        if source is None:
+            source = self._source_key = (self.file, self.lineno_offset, self.func.func.__name__, tuple(self.src))
+        body = getattr(node, "body", None)
+        key = (source, type(node).__name__, node.lineno, node.end_lineno, node.col_offset, node.end_col_offset,
+               body[0].lineno if isinstance(body, list) and body else None)
+        text = texts.get(key)
+        if text is None:
+            text = texts[key] = original(self, node)
+        return text
+
+    get_pos_info.memoised = True
+    get_pos_info.original = original
+    context.get_pos_info = get_pos_info
+    return True

@@ -3,6 +3,9 @@ import importlib.util
 import subprocess
 import sys
 
+import numpy as np
+import pytest
+
 from solver import _ti
 
 
@@ -37,3 +40,50 @@ def test_without_taichi_it_falls_back_to_quadrants_or_says_what_to_install():
         assert last == "fell back to quadrants"
     else:
         assert last.startswith("ImportError: neither taichi nor quadrants is installed; run `pip install")
+
+
+@pytest.mark.backend
+def test_memoised_source_positions_are_the_texts_taichi_writes(monkeypatch):
+    from importlib import import_module
+
+    import solver
+
+    solver.ensure_taichi()
+    context = import_module(f"{_ti.NAME}.lang.ast.ast_transformer_utils").ASTTransformerContext
+    memo = context.get_pos_info
+    if not getattr(memo, "memoised", False):
+        pytest.skip(f"{_ti.NAME} has no ASTTransformerContext.get_pos_info: nothing is memoised")
+    compared = []
+
+    def both(self, node):
+        text = memo(self, node)
+        compared.append(text == memo.original(self, node))
+        return text
+
+    monkeypatch.setattr(context, "get_pos_info", both)
+
+    @_ti.ti.func
+    def twice(x, y):
+        for k in range(3):
+            if x[k] > y[k]:
+                x[k] = (y[k]
+                        + 1.0)
+        return x
+
+    @_ti.ti.kernel
+    def inlines_twice(a: _ti.ti.types.ndarray()) -> _ti.ti.f64:
+        u = twice(a[0], a[1])
+        v = twice(a[1], a[0])
+        return u.sum() + v.sum()
+
+    a = _ti.ti.Vector.ndarray(3, _ti.ti.f64, 2)
+    a.from_numpy(np.array([[1.0, 5.0, 2.0], [3.0, 4.0, 0.5]]))
+    assert inlines_twice(a) == pytest.approx((1.0 + 5.0 + 1.5) + (2.0 + 4.0 + 0.5))
+    assert len(compared) > 20 and all(compared)
+
+    @_ti.ti.kernel
+    def misspelt(a: _ti.ti.types.ndarray()):
+        a[0] = undefined_name    # noqa: F821
+
+    with pytest.raises(Exception, match=r'(?s)line \d+, in misspelt:\n\s+a\[0\] = undefined_name.*\^+'):
+        misspelt(a)

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .cells import signed_volumes
+
 # Radius ratio below which a tet counts as a sliver. A cube's 6-tet (Kuhn) split has 0.72; a good
 # fTetWild mesh has nearly all tets above 0.3.
 SLIVER_RADIUS_RATIO = 0.1
@@ -33,7 +35,7 @@ def det_F(rest: np.ndarray, tets: np.ndarray, x: np.ndarray) -> np.ndarray:
 
     rest, x: (N, 3) rest and current positions; tets: (M, 4) positively oriented at rest.
     """
-    return np.linalg.det(_edge_vectors(x[tets])) / np.linalg.det(_edge_vectors(rest[tets]))
+    return signed_volumes(x, tets) / signed_volumes(rest, tets)
 
 
 def inverted_count(rest: np.ndarray, tets: np.ndarray, x: np.ndarray) -> int:
