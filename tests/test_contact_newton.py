@@ -51,7 +51,6 @@ def _head_on(gap=0.004):
     return sim, a.n_vertices
 
 
-@pytest.mark.slow
 def test_fast_newton_equals_the_numpy_oracle_with_contact():
     sim = _landing()
     for _ in range(2):
