@@ -81,23 +81,34 @@ def memoise_source_positions() -> bool:
     lines_of, file_of, texts = {}, {}, {}
 
     def getsourcelines(func):
-        if func not in lines_of:
-            lines_of[func] = source_lines(func)
-        lines, first = lines_of[func]
+        try:
+            found = lines_of.get(func)
+        except TypeError:                           # unhashable: not memoised
+            return source_lines(func)
+        if found is None:
+            found = lines_of[func] = source_lines(func)
+        lines, first = found
         return list(lines), first
 
     def getsourcefile(func):
-        if func not in file_of:
-            file_of[func] = source_file(func)
-        return file_of[func]
+        try:
+            found = file_of.get(func)
+        except TypeError:
+            return source_file(func)
+        if found is None:
+            found = file_of[func] = source_file(func)
+        return found
 
     def get_pos_info(self, node):
-        source = self.__dict__.get("_source_key")
-        if source is None:
-            source = self._source_key = (self.file, self.lineno_offset, self.func.func.__name__, tuple(self.src))
-        body = getattr(node, "body", None)
-        key = (source, type(node).__name__, node.lineno, node.end_lineno, node.col_offset, node.end_col_offset,
-               body[0].lineno if isinstance(body, list) and body else None)
+        try:
+            source = self.__dict__.get("_source_key")
+            if source is None:
+                source = self._source_key = (self.file, self.lineno_offset, self.func.func.__name__, tuple(self.src))
+            body = getattr(node, "body", None)
+            key = (source, type(node).__name__, node.lineno, node.end_lineno, node.col_offset, node.end_col_offset,
+                   body[0].lineno if isinstance(body, list) and body else None)
+        except (AttributeError, TypeError):         # not the context or node this memo was written for
+            return position(self, node)
         text = texts.get(key)
         if text is None:
             text = texts[key] = position(self, node)
@@ -105,6 +116,7 @@ def memoise_source_positions() -> bool:
 
     get_pos_info.memoised = True
     get_pos_info.original = position
+    getsourcelines.original = source_lines
     kernel_impl.getsourcelines, kernel_impl.getsourcefile = getsourcelines, getsourcefile
     context.get_pos_info = get_pos_info
     return True

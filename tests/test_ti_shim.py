@@ -80,6 +80,8 @@ def test_memoised_source_positions_are_the_texts_taichi_writes(monkeypatch):
     a.from_numpy(np.array([[1.0, 5.0, 2.0], [3.0, 4.0, 0.5]]))
     assert inlines_twice(a) == pytest.approx((1.0 + 5.0 + 1.5) + (2.0 + 4.0 + 0.5))
     assert len(compared) > 20 and all(compared)
+    kernel_impl = import_module(f"{_ti.NAME}.lang.kernel_impl")
+    assert kernel_impl.getsourcelines(twice.func.func) == kernel_impl.getsourcelines.original(twice.func.func)
 
     @_ti.ti.kernel
     def misspelt(a: _ti.ti.types.ndarray()):
