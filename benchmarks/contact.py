@@ -13,8 +13,10 @@ Three measurements, all float64 on the CPU, ratios taken within one run (issue 1
     each), bodies that are nearly all surface;
   * one detection (`ContactDetector.detect`) against one elastic sweep (`run_iterations(1)` without
     contact) on the same settled pile and on the large meshes below, the fastest of 3 interleaved timings
-    of each (target: at most 1x). Set apart, the bodies are left out of the search (far from the others,
-    moved rigidly); touching (1.5 mm gaps, inside the radius) they are all searched;
+    of each (target: at most 1x), with the pairs it returns (every pair within query_radius: each is one
+    exact distance) and its time per pair, against the time per pair at which it would cost one sweep.
+    Set apart, the bodies are left out of the search (far from the others, moved rigidly); touching
+    (1.5 mm gaps, inside the radius) they are all searched;
   * ns per tet per VBD iteration of 8 bodies of 3,072 tets (24,576 tets) set apart, no gravity, with
     contact on (nothing within query_radius) and with contact=None, the fastest of 3 interleaved timings
     of each (target: at most 1.25x).
@@ -33,8 +35,9 @@ from benchmarks.common import (init_taichi, output_folder, parser, positive, pri
 
 OUTPUTS = ("contact.csv", "contact.png", "summary.md")
 COLUMNS = ["measurement", "bodies", "tets", "contacts", "settle_s", "mean_speed", "detections_per_step",
-           "refreshes_per_step", "step_ms", "apart_step_ms", "step_ratio", "detect_ms", "sweep_ms", "detect_per_sweep",
-           "ns_per_tet_iter_none", "ns_per_tet_iter_contact", "contact_per_none"]
+           "refreshes_per_step", "step_ms", "apart_step_ms", "step_ratio", "pairs", "detect_ms", "detect_ns_per_pair",
+           "sweep_ms", "break_even_ns_per_pair", "detect_per_sweep", "ns_per_tet_iter_none", "ns_per_tet_iter_contact",
+           "contact_per_none"]
 SIZE, PITCH, GAP, WALL = 0.08, 0.14, 0.006, 0.02      # m: cube edge, cube spacing, wall gap, wall thickness
 ROUNDS = 3                                            # interleaved timings of the sweep with and without contact
 SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
@@ -105,7 +108,8 @@ def _steps_in_turn(sims, steps):
 
 
 def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
-    """Seconds of one detection at the simulation's positions and of one sweep without contact there."""
+    """Seconds of one detection at the simulation's positions and of one sweep without contact there, and
+    the pairs that detection returns (every pair within query_radius, each one exact distance)."""
     from solver.physics.contact_detection import ContactDetector
     from solver.vbd.layout import X
 
@@ -117,7 +121,7 @@ def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
     for _ in range(ROUNDS):                  # interleaved, the fastest round of each: the machine is shared
         detect_s.append(seconds_per_call(lambda k: [detector.detect(sim.state, X) for _ in range(k)], min_seconds)[0])
         sweep_s.append(seconds_per_call(plain.run_iterations, min_seconds)[0])
-    return min(detect_s), min(sweep_s)
+    return min(detect_s), min(sweep_s), detector.n_pairs
 
 
 def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
@@ -139,12 +143,21 @@ def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
     ((step_s, detections, refreshes), (apart_s, _, _)), ratio = _steps_in_turn((sim, apart), timed)
     contacts = sim.contact_count()
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
-    detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
+    detect_s, sweep_s, pairs = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
     return dict(measurement="ball pile" if balls else "cube pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts,
                 settle_s=settled * sim.dt, mean_speed=mean_speed, detections_per_step=detections,
-                refreshes_per_step=refreshes,
-                step_ms=step_s * 1e3, apart_step_ms=apart_s * 1e3, step_ratio=ratio, detect_ms=detect_s * 1e3,
-                sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
+                refreshes_per_step=refreshes, step_ms=step_s * 1e3, apart_step_ms=apart_s * 1e3, step_ratio=ratio,
+                **_detection_columns(detect_s, sweep_s, pairs))
+
+
+def _detection_columns(detect_s, sweep_s, pairs):
+    """The detection columns of a row; where the detection found pairs, its time per pair and the time per pair
+    at which it would cost one sweep (break_even_ns_per_pair: the sweep's time over the pairs)."""
+    per_pair = {}
+    if pairs:
+        per_pair = dict(detect_ns_per_pair=detect_s * 1e9 / pairs, break_even_ns_per_pair=sweep_s * 1e9 / pairs)
+    return dict(pairs=pairs, detect_ms=detect_s * 1e3, **per_pair, sweep_ms=sweep_s * 1e3,
+                detect_per_sweep=detect_s / sweep_s)
 
 
 def measure_apart(solver, cells, min_seconds):
@@ -164,10 +177,9 @@ def measure_apart(solver, cells, min_seconds):
             seconds[name].append(seconds_per_call(sim.run_iterations, min_seconds)[0])
     seconds = {name: min(v) for name, v in seconds.items()}
     contacts = sims["contact"].contact_count()
-    detect_s, sweep_s = _detect_and_sweep(solver, sims["contact"], mesh, None, min_seconds)
     ns = {k: v / mesh.n_tets * 1e9 for k, v in seconds.items()}
     return dict(measurement="apart, no gravity", bodies=len(bodies), tets=mesh.n_tets, contacts=contacts,
-                detect_ms=detect_s * 1e3, sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s,
+                **_detection_columns(*_detect_and_sweep(solver, sims["contact"], mesh, None, min_seconds)),
                 ns_per_tet_iter_none=ns["none"], ns_per_tet_iter_contact=ns["contact"],
                 contact_per_none=ns["contact"] / ns["none"])
 
@@ -182,10 +194,8 @@ def measure_touching(solver, cells, min_seconds):
     mesh = solver.merge_meshes(bodies)
     sim = solver.Simulation(mesh, solver.Material(**SOFT), dt=1 / 60, gravity=(0, 0, 0), iterations=1,
                             contact=solver.Contact(stiffness=1e4, radius=0.002))
-    detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, None, min_seconds)
-    return dict(measurement="touching, no gravity", bodies=len(bodies), tets=mesh.n_tets,
-                contacts=sim.contact_count(), detect_ms=detect_s * 1e3, sweep_ms=sweep_s * 1e3,
-                detect_per_sweep=detect_s / sweep_s)
+    return dict(measurement="touching, no gravity", bodies=len(bodies), tets=mesh.n_tets, contacts=sim.contact_count(),
+                **_detection_columns(*_detect_and_sweep(solver, sim, mesh, None, min_seconds)))
 
 
 def plot(rows, path):
