@@ -14,6 +14,8 @@ before its work is done. Three measurements, float64 unless a row says float32:
     untimed step (the compile) and --steps timed steps of 1/60 s: median seconds of the last half of them,
     full detections and refreshes of the bounds per step, active contacts and the least separation at the
     end, one detection against one sweep.
+Each detection row also has the pairs that detection returned, its time per pair and the time per pair at
+which it would cost one sweep (benchmarks.contact).
 
     python -m benchmarks.cuda --out benchmarks/results/cuda           # on a machine with a CUDA GPU
     python -m benchmarks.cuda --quick --arch cpu --out /tmp/cuda      # the same code, small, on the CPU
@@ -26,14 +28,16 @@ import numpy as np
 
 from benchmarks.common import (fail, init_taichi, output_folder, parser, positive, print_written, progress,
                                provenance, seconds_per_call, sync, table, write_csv)
-from benchmarks.contact import SOFT, _detect_and_sweep, measure_apart, measure_touching, pile_scene
+from benchmarks.contact import (SOFT, _detect_and_sweep, _detection_columns, measure_apart, measure_touching,
+                                pile_scene)
 from benchmarks.throughput import FULL_SIZES, QUICK_SIZES
 
 OUTPUTS = ("cuda.csv", "summary.md")
 PARTS = ("sweep", "contact", "pile")
 COLUMNS = ["measurement", "arch", "precision", "tets", "bodies", "ns_per_tet_iter", "ms_per_iter",
            "first_iteration_s", "contacts", "min_separation_mm", "detections_per_step", "refreshes_per_step",
-           "step_ms", "detect_ms", "sweep_ms", "detect_per_sweep", "ns_per_tet_iter_none",
+           "step_ms", "pairs", "detect_ms", "detect_ns_per_pair", "sweep_ms", "break_even_ns_per_pair",
+           "detect_per_sweep", "ns_per_tet_iter_none",
            "ns_per_tet_iter_contact", "contact_per_none"]
 
 
@@ -69,13 +73,12 @@ def measure_falling_pile(solver, k, steps, min_seconds):
         sync()
         seconds.append(time.perf_counter() - t)
     timed = steps - steps // 2
-    detect_s, sweep_s = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
     return dict(measurement="falling pile", precision="float64", tets=mesh.n_tets, bodies=k ** 3,
                 contacts=sim.contact_count(), min_separation_mm=sim.min_separation() * 1e3,
                 detections_per_step=(stage.detections - counters[0]) / timed,
                 refreshes_per_step=(stage.refreshes - counters[1]) / timed,
-                step_ms=float(np.median(seconds[steps // 2:])) * 1e3, detect_ms=detect_s * 1e3,
-                sweep_ms=sweep_s * 1e3, detect_per_sweep=detect_s / sweep_s)
+                step_ms=float(np.median(seconds[steps // 2:])) * 1e3,
+                **_detection_columns(*_detect_and_sweep(solver, sim, mesh, fixed, min_seconds)))
 
 
 def measure_all(solver, args, jobs, out, title, gpu, bar):
