@@ -52,7 +52,6 @@ def is_arch_supported(arch) -> bool:
     return bool(import_module(f"{NAME}.lang.misc").is_arch_supported(arch))
 
 
-
 def memoise_source_positions() -> bool:
     """Make kernel compiles faster, with the same result, by memoising two lookups that Taichi's AST
     transform repeats each time a ``ti.func`` is inlined (at every call site, so a kernel that inlines
