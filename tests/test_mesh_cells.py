@@ -196,3 +196,17 @@ def test_clean_meshes_load_without_any_warning(tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         solver.load_mesh(path)
+
+
+@pytest.mark.parametrize("n, k", [(50, 3), (3000, 4), (60000, 4), (3_000_000, 3)])
+def test_unique_rows_is_numpys_unique_of_rows_with_or_without_one_number_per_row(n, k):
+    """The mesh checks' `_unique_rows` gives np.unique(rows, axis=0)'s every output, whether the rows fit in
+    one int64 each (n^k < 2^63) or not (60,000^4 and 3,000,000^3 do not)."""
+    from solver.mesh.tetmesh import _unique_rows
+
+    rows = np.sort(np.random.default_rng(n).integers(0, n, size=(5000, k)), axis=1)
+    rows[100:200] = rows[:100]                          # repeated rows
+    expected = np.unique(rows, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    got = _unique_rows(rows, n, return_index=True, return_inverse=True, return_counts=True)
+    for e, g in zip(expected[1:], got[1:]):
+        assert np.array_equal(e.ravel(), g.ravel())
