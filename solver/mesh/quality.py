@@ -54,7 +54,7 @@ def dihedral_angles(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     normals = np.empty_like(x)
     for i, (a, b, c) in enumerate(((1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1))):
         normals[:, i] = np.cross(x[:, b] - x[:, a], x[:, c] - x[:, a])
-    sign = np.sign(np.linalg.det(_edge_vectors(x)))[:, None]
+    sign = np.sign(signed_volumes(vertices, tets))[:, None]
     normals *= sign[..., None]
     n1, n2 = normals[:, _OPPOSITE[:, 0]], normals[:, _OPPOSITE[:, 1]]    # (M, 6, 3)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -69,7 +69,7 @@ def radius_ratio(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """
     x = vertices[tets]
     e = _edge_vectors(x)                                          # columns a, b, c
-    six_volume = np.linalg.det(e)
+    six_volume = 6.0 * signed_volumes(vertices, tets)
     a, b, c = e[..., 0], e[..., 1], e[..., 2]
     area = 0.5 * (np.linalg.norm(np.cross(a, b), axis=1) + np.linalg.norm(np.cross(b, c), axis=1)
                   + np.linalg.norm(np.cross(c, a), axis=1)
@@ -118,7 +118,7 @@ def degenerate_mask(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
     x = vertices[tets]
     edges = x[:, _EDGES[:, 1]] - x[:, _EDGES[:, 0]]
     longest = np.linalg.norm(edges, axis=2).max(axis=1)
-    return np.abs(np.linalg.det(_edge_vectors(x))) <= 6e-9 * longest ** 3
+    return np.abs(6.0 * signed_volumes(vertices, tets)) <= 6e-9 * longest ** 3
 
 
 def sliver_mask(vertices: np.ndarray, tets: np.ndarray, threshold: float = SLIVER_RADIUS_RATIO) -> np.ndarray:
