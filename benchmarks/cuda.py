@@ -37,8 +37,7 @@ PARTS = ("sweep", "contact", "pile")
 COLUMNS = ["measurement", "arch", "precision", "tets", "bodies", "ns_per_tet_iter", "ms_per_iter",
            "first_iteration_s", "contacts", "min_separation_mm", "detections_per_step", "refreshes_per_step",
            "step_ms", "pairs", "detect_ms", "detect_ns_per_pair", "sweep_ms", "break_even_ns_per_pair",
-           "detect_per_sweep", "ns_per_tet_iter_none",
-           "ns_per_tet_iter_contact", "contact_per_none"]
+           "detect_per_sweep", "ns_per_tet_iter_none", "ns_per_tet_iter_contact", "contact_per_none"]
 
 
 def measure_sweep(solver, cells, precision, min_seconds):

@@ -114,11 +114,11 @@ class MeshQuality:
 
 
 def degenerate_mask(vertices: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """(M,) True where a tet has (numerically) zero volume: |6V| <= 1e-9 * (longest edge)^3 * 6."""
+    """(M,) True where a tet has (numerically) zero volume: |V| <= 1e-9 (longest edge)^3."""
     x = vertices[tets]
     edges = x[:, _EDGES[:, 1]] - x[:, _EDGES[:, 0]]
     longest = np.linalg.norm(edges, axis=2).max(axis=1)
-    return np.abs(6.0 * signed_volumes(vertices, tets)) <= 6e-9 * longest ** 3
+    return np.abs(signed_volumes(vertices, tets)) <= 1e-9 * longest ** 3
 
 
 def sliver_mask(vertices: np.ndarray, tets: np.ndarray, threshold: float = SLIVER_RADIUS_RATIO) -> np.ndarray:

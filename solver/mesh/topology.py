@@ -131,7 +131,7 @@ def rest_geometry(vertices: np.ndarray, tets: np.ndarray) -> RestGeometry:
         return _rest_cache[key]
     d1, d2, d3 = (X[T[:, k]] - X[T[:, 0]] for k in (1, 2, 3))      # the columns of Dm
     volumes = signed_volumes(X, T)
-    # Dm^-1 by cofactors: its rows are d2 x d3, d3 x d1, d1 x d2 over det Dm = 6 vol (5x LAPACK's inverse)
+    # Dm^-1 by cofactors, not LAPACK per 3x3: its rows are d2 x d3, d3 x d1, d1 x d2 over det Dm = 6 vol
     Dm_inv = np.stack([np.cross(d2, d3), np.cross(d3, d1), np.cross(d1, d2)], axis=1) / (6.0 * volumes)[:, None, None]
     rest = RestGeometry(grad_rows=np.concatenate([-Dm_inv.sum(axis=1, keepdims=True), Dm_inv], axis=1),
                         volumes=volumes)
