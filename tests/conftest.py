@@ -8,14 +8,20 @@ A test whose result depends on the backend, because it launches Taichi kernels i
 ``@pytest.mark.backend`` (or its module sets ``pytestmark``); ``tests/test_backends.py`` re-runs exactly
 those on CUDA. Every kernel launch is counted, and a test that launched one without the marker fails
 and says so, so a new test cannot silently stay out of the CUDA run.
+
+With ``--dist loadfile`` the test files go to the workers longest first, by the durations in
+``tests/durations.json`` (``tools/mark_slow.py --write-durations``), so that no worker ends alone on a long file.
 """
 import functools
+import json
 import os
 import tempfile
+from pathlib import Path
 
 import pytest
 
 ARCHS = ("cpu", "gpu")
+DURATIONS = Path(__file__).with_name("durations.json")     # written by tools/mark_slow.py --write-durations
 os.environ.setdefault("VBD_CACHE_DIR", tempfile.mkdtemp(prefix="vbd-cache-"))
 
 
@@ -106,3 +112,30 @@ def pytest_runtest_makereport(item, call):
         report.longrepr = (f"{item.nodeid} launched {launched} Taichi kernels but is not marked backend, so the "
                            "CUDA run would leave it out: add @pytest.mark.backend (or pytestmark = "
                            "pytest.mark.backend in its module)")
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """With --dist loadfile: hand out the test files longest first (xdist orders them by their number of
+    tests, so a file of a few long tests, such as the homework grading, came last and one worker ran it alone
+    while the other had finished)."""
+    if config.getvalue("dist") != "loadfile" or not DURATIONS.is_file():
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    from tools.mark_slow import longest_first
+
+    seconds = json.loads(DURATIONS.read_text())
+
+    class LongestFirst(LoadFileScheduling):
+        def schedule(self):
+            collections = list(self.registered_collections.values())
+            if self.collection is None and collections and all(c == collections[0] for c in collections):
+                scopes = {}
+                for nodeid in collections[0]:
+                    scopes.setdefault(self._split_scope(nodeid), []).append(nodeid)
+                # xdist fills this queue in its own order; a key already present keeps its place
+                for scope in longest_first(scopes, seconds):
+                    self.workqueue[scope] = {}
+            super().schedule()
+
+    return LongestFirst(config, log)

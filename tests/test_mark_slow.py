@@ -1,4 +1,6 @@
 """tools/mark_slow.py: reading a full run's durations and advising which tests carry the slow marker."""
+import json
+
 import pytest
 
 from tools import mark_slow
@@ -65,3 +67,29 @@ def test_a_threshold_that_is_not_a_positive_number_of_seconds_is_a_one_line_argp
     assert stop.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"--threshold: expected a positive number of seconds, got '{threshold}'" in err
+
+
+def test_durations_for_the_scheduler_name_the_long_tests_and_sum_the_rest_per_file(tmp_path, capsys,
+                                                                                   monkeypatch):
+    monkeypatch.setattr(mark_slow, "marked_slow", lambda: MARKED)
+    results, out = tmp_path / "run.xml", tmp_path / "durations.json"
+    results.write_text(JUNIT.replace('name="test_fast" time="0.2"', 'name="test_fast" time="0.12"')
+                       .replace("</testsuite>", '<testcase classname="tests.test_b" name="test_b2" time="0.09"/>'
+                                                '<testcase classname="tests.test_c" name="test_c" time="0.01"/>'
+                                                "</testsuite>"))
+    assert mark_slow.main([str(results), "--write-durations", str(out)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == f"wrote the durations of 4 tests to {out}"
+    assert json.loads(out.read_text()) == {"tests/test_a.py::test_slow_unmarked": 6.5,
+                                           "tests/test_a.py::test_fixture_heavy": 5.5,
+                                           "tests/test_b.py::test_fast_marked[x-1]": 0.8,
+                                           "tests/test_b.py::TestGroup::test_slow_marked": 9.0,
+                                           "tests/test_b.py": 0.2}   # 0.12 + 0.09; skipped and 0.01 s: left out
+
+
+def test_the_longest_files_go_first_counting_only_the_collected_tests():
+    seconds = {"a.py": 1.0, "a.py::t1": 3.0, "b.py::t1": 2.5, "b.py::t2": 2.5, "c.py": 4.5}
+    scopes = {"a.py": ["a.py::t1", "a.py::t2"], "b.py": ["b.py::t1", "b.py::t2"], "c.py": ["c.py::t1"],
+              "d.py": ["d.py::t1"], "e.py": ["e.py::t1"]}
+    assert mark_slow.longest_first(scopes, seconds) == ["b.py", "c.py", "a.py", "d.py", "e.py"]
+    scopes["b.py"] = ["b.py::t1"]                   # -k or -m left one out: 2.5 s
+    assert mark_slow.longest_first(scopes, seconds) == ["c.py", "a.py", "b.py", "d.py", "e.py"]

@@ -11,13 +11,16 @@ or
     .venv/bin/python tools/mark_slow.py durations.txt
 
 It prints the tests to mark slow, the tests to unmark, and the test time of the fast subset
-(`-m "not slow"`) once both are applied. Which tests carry the marker now is read by collecting
+(`-m "not slow"`) once both are applied. With --write-durations tests/durations.json it also records the
+tests that took at least MIN_RECORDED s (and per file the sum of its faster ones), which tests/conftest.py reads to hand the longest test files out
+first when the tests run on several workers (`--dist loadfile`). Which tests carry the marker now is read by collecting
 `-m slow` with pytest. A module-scoped fixture's set-up counts for the first test that uses it.
 Tests the run skipped are not judged (a junit file says which; durations text does not).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import re
 import subprocess
@@ -28,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
+MIN_RECORDED = 0.2     # s: `write_durations` sums the faster tests of a file under the file's name
 DURATION_LINE = re.compile(r"^\s*(\d+(?:\.\d+)?)s\s+(setup|call|teardown)\s+(\S.*?)\s*$")
 
 
@@ -90,6 +94,29 @@ def advise(seconds: dict, skipped: set, marked: set, threshold: float) -> Advice
     return Advice(to_mark, to_unmark, fast_subset, sorted(marked - set(judged)))
 
 
+def write_durations(seconds: dict, skipped: set, path: Path) -> int:
+    """Write to `path` (JSON, sorted, 0.1 s steps) {nodeid: seconds} of the run's tests that took at least
+    MIN_RECORDED s and were not skipped, and {file: seconds} the sum of each file's faster ones; returns how
+    many tests it names."""
+    measured = {n: s for n, s in seconds.items() if n not in skipped}
+    kept = {n: s for n, s in measured.items() if s >= MIN_RECORDED}
+    rest = defaultdict(float)
+    for n, s in measured.items():
+        if s < MIN_RECORDED:
+            rest[n.split("::")[0]] += s
+    entries = {**kept, **{f: s for f, s in rest.items() if s >= 0.05}}
+    path.write_text(json.dumps({n: round(s, 1) for n, s in sorted(entries.items())}, indent=0) + "\n")
+    return len(kept)
+
+
+def longest_first(scopes: dict, seconds: dict) -> list:
+    """The keys of scopes ({file: [nodeid, ...]}) ordered by their expected seconds, longest first: the
+    file's recorded seconds for its faster tests plus those of each of its collected tests that has its own
+    (`write_durations`; a test or file not recorded counts 0). Ties keep their order."""
+    expected = {f: seconds.get(f, 0.0) + sum(seconds.get(n, 0.0) for n in ids) for f, ids in scopes.items()}
+    return sorted(scopes, key=lambda f: -expected[f])
+
+
 def marked_slow() -> set:
     """Node ids of the tests that carry the slow marker now (pytest --collect-only -m slow)."""
     proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-m", "slow",
@@ -137,6 +164,8 @@ def main(argv=None) -> int:
                      formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("results", type=Path, help="pytest --junitxml file, or saved --durations=0 output")
     parser.add_argument("--threshold", type=positive_seconds, default=5.0, help="seconds above which a test is slow")
+    parser.add_argument("--write-durations", type=Path, metavar="JSON", default=None,
+                        help="also write the tests' durations there (tests/durations.json: the scheduler's hints)")
     args = parser.parse_args(argv)
     try:
         if not args.results.is_file():
@@ -145,6 +174,9 @@ def main(argv=None) -> int:
         reader = durations_from_junit if text.lstrip().startswith("<") else durations_from_text
         seconds, skipped = reader(text)
         print(report(advise(seconds, skipped, marked_slow(), args.threshold), args.threshold))
+        if args.write_durations is not None:
+            kept = write_durations(seconds, skipped, args.write_durations)
+            print(f"wrote the durations of {kept} tests to {args.write_durations}")
     except InputError as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
