@@ -114,6 +114,7 @@ def pytest_runtest_makereport(item, call):
                            "pytest.mark.backend in its module)")
 
 
+@pytest.hookimpl(optionalhook=True)         # an xdist hook: pytest without xdist never calls it
 def pytest_xdist_make_scheduler(config, log):
     """With --dist loadfile: hand out the test files longest first (xdist orders them by their number of
     tests, so a file of a few long tests, such as the homework grading, came last and one worker ran it alone

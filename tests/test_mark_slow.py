@@ -1,9 +1,14 @@
 """tools/mark_slow.py: reading a full run's durations and advising which tests carry the slow marker."""
 import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 
 from tools import mark_slow
+
+ROOT = Path(__file__).resolve().parent.parent
 
 DURATIONS = """
 ============================= slowest durations ==============================
@@ -93,3 +98,13 @@ def test_the_longest_files_go_first_counting_only_the_collected_tests():
     assert mark_slow.longest_first(scopes, seconds) == ["b.py", "c.py", "a.py", "d.py", "e.py"]
     scopes["b.py"] = ["b.py::t1"]                   # -k or -m left one out: 2.5 s
     assert mark_slow.longest_first(scopes, seconds) == ["c.py", "a.py", "b.py", "d.py", "e.py"]
+
+
+def test_the_suite_collects_without_xdist():
+    """The scheduler hook in tests/conftest.py is xdist's: without xdist (-p no:xdist) pytest stopped on it as
+    an unknown hook before collecting anything."""
+    proc = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:xdist",
+                           "-p", "no:cacheprovider", "tests/test_mark_slow.py"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "test_the_suite_collects_without_xdist" in proc.stdout
