@@ -10,7 +10,8 @@ those on CUDA. Every kernel launch is counted, and a test that launched one with
 and says so, so a new test cannot silently stay out of the CUDA run.
 
 With ``--dist loadfile`` the test files go to the workers longest first, by the durations in
-``tests/durations.json`` (``tools/mark_slow.py --write-durations``), so that no worker ends alone on a long file.
+``tests/durations.json`` (``tools/mark_slow.py RUN.xml --write-durations tests/durations.json --overwrite``),
+so that no worker ends alone on a long file.
 """
 import functools
 import json

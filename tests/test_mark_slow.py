@@ -84,6 +84,11 @@ def test_durations_for_the_scheduler_name_the_long_tests_and_sum_the_rest_per_fi
                                                 "</testsuite>"))
     assert mark_slow.main([str(results), "--write-durations", str(out)]) == 0
     assert capsys.readouterr().out.splitlines()[-1] == f"wrote the durations of 4 tests to {out}"
+    written = out.read_text()
+    assert mark_slow.main([str(results), "--write-durations", str(out)]) == 1      # never replaced unasked
+    err = capsys.readouterr().err
+    assert err == f"error: {out} exists; pass --overwrite to replace it\n" and out.read_text() == written
+    assert mark_slow.main([str(results), "--write-durations", str(out), "--overwrite"]) == 0
     assert json.loads(out.read_text()) == {"tests/test_a.py::test_slow_unmarked": 6.5,
                                            "tests/test_a.py::test_fixture_heavy": 5.5,
                                            "tests/test_b.py::test_fast_marked[x-1]": 0.8,

@@ -11,11 +11,12 @@ or
     .venv/bin/python tools/mark_slow.py durations.txt
 
 It prints the tests to mark slow, the tests to unmark, and the test time of the fast subset
-(`-m "not slow"`) once both are applied. With --write-durations tests/durations.json it also records the
-tests that took at least MIN_RECORDED s (and per file the sum of its faster ones), which tests/conftest.py reads to hand the longest test files out
-first when the tests run on several workers (`--dist loadfile`). Which tests carry the marker now is read by collecting
-`-m slow` with pytest. A module-scoped fixture's set-up counts for the first test that uses it.
-Tests the run skipped are not judged (a junit file says which; durations text does not).
+(`-m "not slow"`) once both are applied. With --write-durations tests/durations.json --overwrite it also
+records the tests that took at least MIN_RECORDED s (and per file the sum of its faster ones), which
+tests/conftest.py reads to hand the longest test files out first when the tests run on several workers
+(`--dist loadfile`). Which tests carry the marker now is read by collecting `-m slow` with pytest. A
+module-scoped fixture's set-up counts for the first test that uses it. Tests the run skipped are not judged
+(a junit file says which; durations text does not).
 """
 from __future__ import annotations
 
@@ -96,16 +97,16 @@ def advise(seconds: dict, skipped: set, marked: set, threshold: float) -> Advice
 
 def write_durations(seconds: dict, skipped: set, path: Path) -> int:
     """Write to `path` (JSON, sorted, 0.1 s steps) {nodeid: seconds} of the run's tests that took at least
-    MIN_RECORDED s and were not skipped, and {file: seconds} the sum of each file's faster ones; returns how
-    many tests it names."""
+    MIN_RECORDED s and were not skipped, and {file: seconds} the sum of each file's faster ones (left out where
+    it rounds to 0); returns how many tests it names."""
     measured = {n: s for n, s in seconds.items() if n not in skipped}
     kept = {n: s for n, s in measured.items() if s >= MIN_RECORDED}
     rest = defaultdict(float)
     for n, s in measured.items():
         if s < MIN_RECORDED:
             rest[n.split("::")[0]] += s
-    entries = {**kept, **{f: s for f, s in rest.items() if s >= 0.05}}
-    path.write_text(json.dumps({n: round(s, 1) for n, s in sorted(entries.items())}, indent=0) + "\n")
+    rounded = {n: round(s, 1) for n, s in sorted({**kept, **rest}.items())}
+    path.write_text(json.dumps({n: s for n, s in rounded.items() if s > 0}, indent=0) + "\n")
     return len(kept)
 
 
@@ -166,10 +167,13 @@ def main(argv=None) -> int:
     parser.add_argument("--threshold", type=positive_seconds, default=5.0, help="seconds above which a test is slow")
     parser.add_argument("--write-durations", type=Path, metavar="JSON", default=None,
                         help="also write the tests' durations there (tests/durations.json: the scheduler's hints)")
+    parser.add_argument("--overwrite", action="store_true", help="replace the --write-durations file if it exists")
     args = parser.parse_args(argv)
     try:
         if not args.results.is_file():
             raise InputError(f"{args.results}: no such file; give the junit xml or durations file of a full run")
+        if args.write_durations is not None and args.write_durations.exists() and not args.overwrite:
+            raise InputError(f"{args.write_durations} exists; pass --overwrite to replace it")
         text = args.results.read_text(errors="replace")
         reader = durations_from_junit if text.lstrip().startswith("<") else durations_from_text
         seconds, skipped = reader(text)
