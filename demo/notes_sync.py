@@ -62,12 +62,18 @@ SOLUTION_MARKER = re.compile(r"^[ \t]*# (BEGIN|END) SOLUTION\b.*$")
 # ---------------------------------------------------------------------------------------------
 # Code excerpts
 # ---------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=32)
+def _module_tree(text: str) -> ast.Module:
+    """The syntax tree of a Python file's text, parsed once for all the excerpts quoted from it (read only)."""
+    return ast.parse(text)
+
+
 def function_source(path: Path, name: str) -> str:
     """Dedented source of `name` ("function" or "Class.method") in the Python file `path`, decorators
     included, without the homework's solution markers (a region that ends the function would otherwise
     be quoted without its END line)."""
     text = path.read_text(encoding="utf-8")
-    node = ast.parse(text)
+    node = _module_tree(text)
     for part in name.split("."):
         matches = [child for child in ast.iter_child_nodes(node)
                    if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and child.name == part]

@@ -52,6 +52,41 @@ def is_arch_supported(arch) -> bool:
     return bool(import_module(f"{NAME}.lang.misc").is_arch_supported(arch))
 
 
+def light_allocation_tracebacks() -> bool:
+    """Make allocating an ndarray cheaper, its debug record the same but for the source text: Taichi stores
+    with every ndarray the Python stack that made it, for its error messages, formatted by ``traceback``,
+    which reads the source line of every frame and checks every file on the stack for changes (much of the
+    time it takes to build a small Simulation inside a deep stack such as a test runner's). The replacement
+    writes the same ``File "...", line ..., in ...`` lines, leaving out the source lines under them.
+
+    Returns whether it is in place (False where this Taichi allocates ndarrays otherwise, e.g. another
+    version or Quadrants: nothing is changed then)."""
+    import sys
+    from importlib import import_module
+
+    try:
+        modules = [import_module(f"{NAME}.lang.{name}") for name in ("_ndarray", "matrix")]
+        original = modules[0].get_traceback
+    except (ImportError, AttributeError):
+        return False
+    if getattr(original, "light", False):
+        return True
+
+    def get_traceback(stacklevel=1):
+        frame, lines = sys._getframe(stacklevel + 1), []
+        while frame is not None:
+            lines.append(f'  File "{frame.f_code.co_filename}", line {frame.f_lineno}, in {frame.f_code.co_name}\n')
+            frame = frame.f_back
+        return "".join(reversed(lines))
+
+    get_traceback.light = True
+    get_traceback.original = original
+    for module in modules:
+        if getattr(module, "get_traceback", None) is original:
+            module.get_traceback = get_traceback
+    return True
+
+
 def memoise_source_positions() -> bool:
     """Make kernel compiles faster, with the same result, by memoising two lookups that Taichi's AST
     transform repeats each time a ``ti.func`` is inlined (at every call site, so a kernel that inlines

@@ -49,6 +49,7 @@ def ensure_taichi(arch=None) -> None:
     if arch not in (None, "cpu", "gpu"):
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
     _ti.memoise_source_positions()
+    _ti.light_allocation_tracebacks()
     running = _ti.initialised_arch()
     if running is not None and arch is not None:
         on_cpu = running_on_cpu()

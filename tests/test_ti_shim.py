@@ -89,3 +89,25 @@ def test_memoised_source_positions_are_the_texts_taichi_writes(monkeypatch):
 
     with pytest.raises(Exception, match=r'(?s)line \d+, in misspelt:\n\s+a\[0\] = undefined_name.*\^+'):
         misspelt(a)
+
+
+def test_light_allocation_tracebacks_keep_taichis_frame_lines():
+    """Every ndarray Taichi allocates records the stack that made it; the light record has the same
+    "File ..., line ..., in ..." lines as Taichi's own, in the same order, without the source text."""
+    from importlib import import_module
+
+    import solver
+
+    solver.ensure_taichi()
+    light = import_module(f"{_ti.NAME}.lang._ndarray").get_traceback
+    if not getattr(light, "light", False):
+        pytest.skip(f"{_ti.NAME} records ndarray allocations otherwise: nothing is replaced")
+
+    def allocate():                 # stands for Ndarray.__init__: stacklevel=1 leaves it out
+        return light(), light.original()
+
+    ours, taichis = allocate()
+    assert ours.startswith('  File "')
+    assert ours.endswith(", in test_light_allocation_tracebacks_keep_taichis_frame_lines\n")
+    assert ours.splitlines() == [line for line in taichis.splitlines() if line.startswith('  File "')]
+    assert _ti.light_allocation_tracebacks() and import_module(f"{_ti.NAME}.lang.matrix").get_traceback is light
