@@ -114,9 +114,21 @@ def test_cuda_without_a_gpu_says_so_in_one_line(capsys, cuda_present, tmp_path):
     assert not (tmp_path / "out").exists(), "nothing is made before the refusal"
 
 
-@pytest.mark.slow
-def test_stability_quick(tmp_path):
-    run_quick("stability", tmp_path)
+@pytest.mark.backend
+def test_stability_quick(tmp_path, capsys, arch):
+    """In this process, with the threads Taichi already runs with (another count would mean a new ti.init,
+    which frees every array made before it)."""
+    import solver
+    from solver._ti import running_config
+
+    if arch != "cpu":
+        pytest.skip("the stability benchmark runs on the CPU only: a CUDA run would be initialised again")
+    solver.ensure_taichi("cpu")
+    threads = running_config().cpu_max_num_threads
+    stability = _module("stability")
+    stability.main(["--quick", "--no-progress", "--threads", str(threads), "--out", str(tmp_path)])
+    out = capsys.readouterr().out
+    assert "|" in out and out.strip().splitlines()[-1] == f"wrote {', '.join(stability.OUTPUTS)} into {tmp_path}"
     data = rows(tmp_path / "stability.csv")
     assert {"dt", "E", "nu", "state", "finite", "monotone", "recovers", "error"} <= set(data[0])
     assert {r["state"] for r in data} == {"rest", "noise", "inverted", "flat", "velocity"}
@@ -589,20 +601,30 @@ def test_the_readme_says_what_each_benchmark_writes(name):
 
 
 @pytest.mark.backend
-def test_newton_speed_measures_only_the_installed_linear_solvers(tmp_path, capsys, monkeypatch):
-    """Without cvxopt and cholespy (the default install) there are no CHOLMOD or cholespy rows: they would
-    be SuperLU's times under those names (DirectSolver falls back to it). The summary names them and says
-    how to install them."""
+def test_newton_speed_quick_measures_only_the_installed_linear_solvers(tmp_path, capsys, monkeypatch):
+    """The --quick run writes its CSVs, every method reaching x*. Without cvxopt and cholespy (the default
+    install) there are no CHOLMOD or cholespy rows: they would be SuperLU's times under those names
+    (DirectSolver falls back to it). The summary names them and says how to install them. A second run
+    into the same folder replaces nothing without --overwrite. No timing is asserted."""
     monkeypatch.setitem(sys.modules, "cvxopt", None)         # not importable, installed or not
     monkeypatch.setitem(sys.modules, "cholespy", None)
-    assert _module("newton_speed").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
-    measured = {r["method"] for r in rows(tmp_path / "newton_speed.csv")}
+    newton_speed = _module("newton_speed")
+    assert newton_speed.main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    data = rows(tmp_path / "newton_speed.csv")
+    assert {r["section"] for r in data} == {"converged step", "one iteration", "time_to_error"}
+    assert all(float(r["final_error"]) < 1e-8 for r in data if r["section"] == "time_to_error"), data
+    assert (tmp_path / "pcg.png").stat().st_size > 0
+    measured = {r["method"] for r in data}
     curves = {r["method"] for r in rows(tmp_path / "pcg_curves.csv")}
     assert {"Newton (qdldl)", "Newton (superlu)"} <= measured and {"Newton (qdldl)", "Newton (superlu)"} <= curves
     assert not [m for m in measured | curves if "cholmod" in m or "cholespy" in m]
     skipped = ("Skipped, not installed: Newton (cholmod), Newton (cholespy); to measure them: "
                "pip install -r requirements-cholmod.txt.")
     assert skipped in capsys.readouterr().out and skipped in (tmp_path / "summary.md").read_text()
+    written = (tmp_path / "newton_speed.csv").read_text()
+    _exits_with_one_line(capsys, lambda: newton_speed.main(["--quick", "--out", str(tmp_path)]),
+                         "already exist; pass --overwrite")
+    assert (tmp_path / "newton_speed.csv").read_text() == written
 
 
 @pytest.mark.backend

@@ -111,28 +111,3 @@ def test_bad_settings_are_config_errors(problem):
         NewtonPCG(p.tets, p.free, "ilu")
     with pytest.raises(solver.ConfigError, match="forcing"):
         NewtonPCG(p.tets, p.free, forcing=1.5)
-
-
-@pytest.mark.slow
-def test_newton_speed_benchmark_quick_run_and_no_overwrite(tmp_path):
-    """The benchmark's --quick mode writes its CSVs (every method reaches x*), and refuses to
-    overwrite them without --overwrite. No timing is asserted."""
-    import csv
-    import os
-    import subprocess
-    import sys
-
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    command = [sys.executable, "-m", "benchmarks.newton_speed", "--quick", "--out", str(tmp_path)]
-    proc = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    with open(tmp_path / "newton_speed.csv", newline="") as fh:
-        data = list(csv.DictReader(fh))
-    sections = {r["section"] for r in data}
-    assert sections == {"converged step", "one iteration", "time_to_error"}
-    for r in data:
-        if r["section"] == "time_to_error":
-            assert float(r["final_error"]) < 1e-8, r
-    assert (tmp_path / "pcg.png").stat().st_size > 0
-    again = subprocess.run(command, cwd=root, capture_output=True, text=True, timeout=600)
-    assert again.returncode == 2 and "--overwrite" in again.stderr and "Traceback" not in again.stderr
