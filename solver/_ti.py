@@ -55,9 +55,9 @@ def is_arch_supported(arch) -> bool:
 def light_allocation_tracebacks() -> bool:
     """Make allocating an ndarray cheaper, its debug record the same but for the source text: Taichi stores
     with every ndarray the Python stack that made it, for its error messages, formatted by ``traceback``,
-    which reads the source line of every frame and checks every file on the stack for changes (much of the
-    time it takes to build a small Simulation inside a deep stack such as a test runner's). The replacement
-    writes the same ``File "...", line ..., in ...`` lines, leaving out the source lines under them.
+    which reads the source line of every frame and checks every file on the stack for changes: little for
+    one simulation, but it adds up over the thousands of arrays a test run allocates from deep stacks. The
+    replacement writes the same ``File "...", line ..., in ...`` lines, leaving out the source lines under them.
 
     Returns whether it is in place (False where this Taichi allocates ndarrays otherwise, e.g. another
     version or Quadrants: nothing is changed then)."""
