@@ -124,16 +124,21 @@ def _energy(kind, X, contact=CONTACT):
     return C.pair_energy_np(np.array([kind]), X[None], contact)[0]
 
 
+STEPS = np.eye(12).reshape(12, 4, 3)        # one coordinate of one vertex moved, for each of the 12
+
+
+def _fd_forces_all(kind, X, contact=CONTACT, eps=1e-8):
+    """-dE/dX (P, 4, 3) of the pairs (kind (P,), X (P, 4, 3)) by central differences, all at once."""
+    P = len(kind)
+    kinds = np.repeat(kind, 12)
+    plus = C.pair_energy_np(kinds, (X[:, None] + eps * STEPS).reshape(-1, 4, 3), contact).reshape(P, 12)
+    minus = C.pair_energy_np(kinds, (X[:, None] - eps * STEPS).reshape(-1, 4, 3), contact).reshape(P, 12)
+    return (-(plus - minus) / (2 * eps)).reshape(P, 4, 3)
+
+
 def _fd_forces(kind, X, contact=CONTACT, eps=1e-8):
-    """-dE/dX (4, 3) by central differences."""
-    f = np.zeros((4, 3))
-    for j in range(4):
-        for a in range(3):
-            Xp, Xm = X.copy(), X.copy()
-            Xp[j, a] += eps
-            Xm[j, a] -= eps
-            f[j, a] = -(_energy(kind, Xp, contact) - _energy(kind, Xm, contact)) / (2 * eps)
-    return f
+    """-dE/dX (4, 3) of one pair by central differences."""
+    return _fd_forces_all(np.array([kind]), X[None], contact, eps)[0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,9 +172,9 @@ def test_forces_match_finite_differences_on_random_pairs():
     keep = (d > 1e-3) & (np.abs(d - tau) > 1e-4) & (d < r - 1e-4)
     assert keep.sum() > 150
     forces = C.pair_forces_np(kind, X, CONTACT)
-    for p in np.flatnonzero(keep):
-        fd = _fd_forces(kind[p], X[p])
-        assert np.linalg.norm(forces[p] - fd) <= 1e-6 * np.linalg.norm(forces[p]), (p, kind[p])
+    fd = _fd_forces_all(kind[keep], X[keep])
+    for p, fd_p in zip(np.flatnonzero(keep), fd):
+        assert np.linalg.norm(forces[p] - fd_p) <= 1e-6 * np.linalg.norm(forces[p]), (p, kind[p])
 
 
 def test_distance_is_the_least_over_sampled_points():
@@ -239,16 +244,14 @@ def test_barrier_is_c2_at_half_radius_and_vanishes_beyond_radius():
                                      - C.barrier_derivatives_np(d - h, k, r)[0]) / (2 * h), rtol=1e-6)
 
 
-def _fd_hessian(kind, X, eps):
-    """d2E/dX2 (12, 12) by central differences of the numpy forces."""
-    H = np.zeros((12, 12))
-    for a in range(12):
-        Xp, Xm = X.copy().reshape(12), X.copy().reshape(12)
-        Xp[a] += eps
-        Xm[a] -= eps
-        forces = C.pair_forces_np(np.array([kind, kind]), np.stack([Xp, Xm]).reshape(2, 4, 3), CONTACT)
-        H[:, a] = -(forces[0] - forces[1]).ravel() / (2 * eps)
-    return H
+def _fd_hessians(kind, X, eps):
+    """d2E/dX2 (P, 12, 12) of the pairs (kind (P,), X (P, 4, 3)) by central differences of the numpy forces,
+    all at once."""
+    P = len(kind)
+    kinds = np.repeat(kind, 12)
+    plus = C.pair_forces_np(kinds, (X[:, None] + eps * STEPS).reshape(-1, 4, 3), CONTACT).reshape(P, 12, 12)
+    minus = C.pair_forces_np(kinds, (X[:, None] - eps * STEPS).reshape(-1, 4, 3), CONTACT).reshape(P, 12, 12)
+    return (-(plus - minus) / (2 * eps)).transpose(0, 2, 1)     # column a: the forces' change along a
 
 
 def _near_parallel_edges(degrees, d):
@@ -277,8 +280,7 @@ def test_exact_pair_hessian_matches_finite_differences():
     X = np.concatenate([X, np.stack([c[1] for c in cases])])
     H = C.pair_hessian_np(kind, X, CONTACT, exact=True)
     np.testing.assert_allclose(H, H.transpose(0, 2, 1), rtol=0, atol=1e-12 * np.abs(H).max())
-    for p in range(len(kind)):
-        fd = _fd_hessian(kind[p], X[p], 1e-7)
+    for p, fd in enumerate(_fd_hessians(kind, X, 1e-7)):
         assert np.linalg.norm(H[p] - fd) <= 1e-6 * np.linalg.norm(fd), (p, kind[p])
     psd = C.pair_hessian_np(kind, X, CONTACT)
     assert np.linalg.norm(H[-2]) > 1e3 * np.linalg.norm(psd[-2])      # 0.1 degrees, d = 0.03
