@@ -16,6 +16,8 @@ except ImportError:
         raise ImportError("neither taichi nor quadrants is installed; run "
                           "`pip install -r requirements.txt` with CPython 3.10-3.13") from None
 
+import numpy as np
+
 NAME = ti.__name__
 
 
@@ -152,4 +154,151 @@ def memoise_source_positions() -> bool:
     getsourcelines.original = source_lines
     kernel_impl.getsourcelines, kernel_impl.getsourcefile = getsourcelines, getsourcefile
     context.get_pos_info = get_pos_info
+    return True
+
+
+def quick_kernel_calls() -> bool:
+    """Make calling a kernel cheaper, with the same launches: Taichi's own call works out again at every
+    launch, in Python, which compiled instance the arguments select (a key built from every argument's
+    type, hashed), checks every argument against its annotation, finalises the fields, asks the compile
+    cache for the compiled code and sets every argument through a chain of type tests: tens of
+    microseconds a launch, and about ten more per array argument, where the kernel itself may take less
+    (a VBD iteration of a classroom mesh passes ten arrays).
+
+    The replacement keeps, per kernel, what it needs to launch again: how each argument is set (from the
+    annotations, once), and per choice of compiled instance (the template arguments' values and each
+    array's element type, dimensions and gradient, written as small integers cached on the array) the
+    compiled code. A call whose arguments it was not written for (keyword arguments, defaults left out,
+    numpy or torch arrays, arrays with gradients, fields or compound values as templates, matrix or
+    struct arguments or return values, autodiff, a kernel that prints, a tape or forward mode running) goes Taichi's own
+    way, as does the first call of each instance, which compiles it; so do all calls after ``ti.init``
+    again until each instance has been met once more. Errors are Taichi's own.
+
+    Returns whether it is in place (False where this Taichi launches kernels otherwise, e.g. another
+    version or Quadrants: nothing is changed then)."""
+    from importlib import import_module
+
+    try:
+        kernel_impl = import_module(f"{NAME}.lang.kernel_impl")
+        impl = import_module(f"{NAME}.lang.impl")
+        Kernel, Ndarray = kernel_impl.Kernel, import_module(f"{NAME}.lang._ndarray").Ndarray
+        primitive_types = import_module(f"{NAME}.types.primitive_types")
+        ndarray_type = import_module(f"{NAME}.types.ndarray_type").NdarrayType
+        template = import_module(f"{NAME}.types").template
+        data_type = import_module(f"{NAME}._lib").core.DataType
+        none_mode, from_cpp = kernel_impl.AutodiffMode.NONE, kernel_impl.handle_exception_from_cpp
+        is_signed, cook_dtype = kernel_impl.is_signed, kernel_impl.cook_dtype
+        real_ids, integer_ids = primitive_types.real_type_ids, primitive_types.integer_type_ids
+        Kernel.ensure_compiled, impl.PyTaichi.materialize       # what `call` uses besides the above
+    except (ImportError, AttributeError):
+        return False
+    if getattr(Kernel, "quick_calls", None) is not None:
+        return True
+    taichi_call = Kernel.__call__
+    ARRAY, FLOAT, INT, UINT, TEMPLATE = range(5)
+    template_types = (bool, int, float, str, type(None), data_type)
+    signatures = {}                 # (element type, ndim) -> small int, so that keys hash quickly
+
+    def plan_of(kernel):
+        """((kind, (slot,)) per argument), or None where an annotation is of a kind not handled here."""
+        plan, slot = [], 0
+        for argument in kernel.arguments:
+            annotation = argument.annotation
+            if isinstance(annotation, template):
+                plan.append((TEMPLATE, None))
+                continue
+            if isinstance(annotation, ndarray_type):
+                kind = ARRAY
+            elif id(annotation) in real_ids:
+                kind = FLOAT
+            elif id(annotation) in integer_ids:
+                kind = INT if is_signed(cook_dtype(annotation)) else UINT
+            else:
+                return None
+            plan.append((kind, (slot,)))
+            slot += 1
+        return tuple(plan)
+
+    def nothing_to_materialise(runtime):
+        """Whether `runtime.materialize()` would do nothing: no field declared since the last launch."""
+        builder = impl._root_fb
+        return (runtime.materialized and not runtime.global_vars and not runtime.grad_vars
+                and not runtime.dual_vars and not runtime.matrix_fields and (builder.finalized or builder.empty)
+                and all(b is builder for b in runtime.unfinalized_fields_builder))
+
+    def readers_of(kernel):
+        """(reader of each return value from a launched context), or None where a value is not a scalar."""
+        readers = []
+        for i, kind in enumerate(kernel.return_type or ()):
+            if id(kind) in real_ids:
+                readers.append(lambda context, index=(i,): context.get_struct_ret_float(index))
+            elif id(kind) in integer_ids and is_signed(cook_dtype(kind)):
+                readers.append(lambda context, index=(i,): context.get_struct_ret_int(index))
+            elif id(kind) in integer_ids:
+                readers.append(lambda context, index=(i,): context.get_struct_ret_uint(index))
+            else:
+                return None
+        return tuple(readers)
+
+    def call(self, *args, **kwargs):
+        runtime = self.runtime
+        memo = self.__dict__.get("_quick_calls")
+        if memo is None or memo[0] is not runtime:
+            readers = readers_of(self)
+            memo = self._quick_calls = (runtime, None if readers is None else plan_of(self), readers, {})
+        _, plan, readers, launches = memo
+        if (plan is None or kwargs or len(args) != len(plan) or self.autodiff_mode != none_mode or self.has_print
+                or runtime.fwd_mode_manager or runtime.target_tape):
+            return taichi_call(self, *args, **kwargs)
+        key = []
+        for (kind, _), value in zip(plan, args):
+            if kind == ARRAY:
+                if not isinstance(value, Ndarray) or value.grad is not None:
+                    return taichi_call(self, *args, **kwargs)
+                signature = value.__dict__.get("_launch_signature")
+                if signature is None:
+                    signature = value._launch_signature = signatures.setdefault(
+                        (value.element_type, len(value.shape)), len(signatures))
+                key.append(signature)
+            elif kind == TEMPLATE:
+                if not isinstance(value, template_types):
+                    return taichi_call(self, *args, **kwargs)
+                key.append((type(value), value))
+            elif not isinstance(value, (int, float, np.integer, np.floating)) or (
+                    kind != FLOAT and not isinstance(value, (int, np.integer))):
+                return taichi_call(self, *args, **kwargs)
+        key = tuple(key)
+        found = launches.get(key)
+        if found is None:
+            result = taichi_call(self, *args, **kwargs)       # compiles this instance on its first call
+            prog = runtime.prog
+            compiled = self.compiled_kernels[self.ensure_compiled(*args)]
+            launches[key] = (compiled, prog.compile_kernel(prog.config(), prog.get_device_caps(), compiled))
+            return result
+        compiled, code = found
+        if not nothing_to_materialise(runtime):
+            runtime.materialize()
+        context = compiled.make_launch_context()
+        for (kind, slot), value in zip(plan, args):
+            if kind == ARRAY:
+                context.set_arg_ndarray(slot, value.arr)
+            elif kind == FLOAT:
+                context.set_arg_float(slot, float(value))
+            elif kind == INT:
+                context.set_arg_int(slot, int(value))
+            elif kind == UINT:
+                context.set_arg_uint(slot, int(value))
+        try:
+            runtime.prog.launch_kernel(code, context)
+        except Exception as e:
+            raise from_cpp(e) from None
+        if not readers:
+            return None
+        runtime.prog.synchronize()
+        values = [read(context) for read in readers]
+        return values[0] if len(values) == 1 else values
+
+    call.quick = True
+    Kernel.quick_calls = taichi_call
+    Kernel.__call__ = call
     return True

@@ -50,6 +50,7 @@ def ensure_taichi(arch=None) -> None:
         raise ConfigError(f"unknown arch {arch!r}; use 'cpu' or 'gpu'")
     _ti.memoise_source_positions()
     _ti.light_allocation_tracebacks()
+    _ti.quick_kernel_calls()
     running = _ti.initialised_arch()
     if running is not None and arch is not None:
         on_cpu = running_on_cpu()

@@ -1,7 +1,9 @@
 """solver._ti: Taichi where it is installed, else its fork Quadrants, and the runtime queries that differ."""
 import importlib.util
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,3 +113,129 @@ def test_light_allocation_tracebacks_keep_taichis_frame_lines():
     assert ours.endswith(", in test_light_allocation_tracebacks_keep_taichis_frame_lines\n")
     assert ours.splitlines() == [line for line in taichis.splitlines() if line.startswith('  File "')]
     assert _ti.light_allocation_tracebacks() and import_module(f"{_ti.NAME}.lang.matrix").get_traceback is light
+
+
+def _quick_or_skip():
+    import solver
+
+    solver.ensure_taichi()
+    if not _ti.quick_kernel_calls():
+        pytest.skip(f"{_ti.NAME} launches kernels otherwise: nothing is replaced")
+    from importlib import import_module
+
+    return import_module(f"{_ti.NAME}.lang.kernel_impl").Kernel
+
+
+@_ti.ti.kernel
+def _mixed(x: _ti.ti.types.ndarray(), v: _ti.ti.types.ndarray(), s: _ti.ti.f64, n: _ti.ti.i32,
+           dtype: _ti.ti.template(), k: _ti.ti.template()) -> (_ti.ti.f64, _ti.ti.i32):
+    total = _ti.ti.cast(0, _ti.ti.f64)
+    for i in range(n):
+        x[i] = _ti.ti.cast(s * i + k, dtype) / 3
+        v[i] = v[i] * s + _ti.ti.Vector([i, k, 1.0 / 3])
+        total += x[i] + v[i].sum()
+    return total, n * k
+
+
+@pytest.mark.backend
+def test_quick_calls_launch_what_taichis_own_call_launches(monkeypatch):
+    """The quick call sets every argument as Taichi's own does (arrays of scalars and of vectors, floats,
+    ints, templates selecting the instance) and returns the same values: the same arrays after the same
+    calls made either way."""
+    Kernel = _quick_or_skip()
+    rng = np.random.default_rng(3)
+    v0 = rng.standard_normal((8, 3))
+    results = {}
+    for way in ("taichi", "quick"):
+        x = _ti.ti.ndarray(_ti.ti.f64, 8)
+        v = _ti.ti.Vector.ndarray(3, _ti.ti.f64, 8)
+        x.from_numpy(np.zeros(8))
+        v.from_numpy(v0)
+        call = Kernel.quick_calls if way == "taichi" else Kernel.__call__
+        returned = [call(_mixed._primal, x, v, 0.5 + step, 5 + step % 3, _ti.ti.f64, 2 + step % 2)
+                    for step in range(6)]
+        results[way] = returned, x.to_numpy(), v.to_numpy()
+    assert results["quick"][0] == results["taichi"][0]
+    np.testing.assert_array_equal(results["quick"][1], results["taichi"][1])
+    np.testing.assert_array_equal(results["quick"][2], results["taichi"][2])
+    launched = []
+    monkeypatch.setattr(Kernel, "launch_kernel", lambda self, *a: launched.append(1) or Kernel.launch_kernel(self, *a))
+    _mixed(x, v, 0.5, 5, _ti.ti.f64, 2)
+    assert launched == [], "a call of an instance met before went Taichi's own way"
+
+
+@pytest.mark.backend
+def test_quick_calls_follow_the_arrays_to_their_instance():
+    """Arrays of another element type select another compiled instance, alternately and after arrays are
+    made again (their types are cached on each array, their instance per kernel)."""
+    _quick_or_skip()
+
+    @_ti.ti.kernel
+    def third(a: _ti.ti.types.ndarray()):
+        for i in range(a.shape[0]):
+            a[i] = 1 / 3 + i
+
+    for _ in range(3):
+        for dtype, np_dtype in ((_ti.ti.f64, np.float64), (_ti.ti.f32, np.float32), (_ti.ti.i32, np.int32)):
+            a = _ti.ti.ndarray(dtype, 4)
+            third(a)
+            third(a)
+            np.testing.assert_array_equal(a.to_numpy(), (np.float64(1) / 3 + np.arange(4)).astype(np_dtype))
+    b = _ti.ti.ndarray(_ti.ti.f64, (2, 2))
+    with pytest.raises(Exception):      # Taichi's own error: this kernel indexes one dimension
+        third(b)
+
+
+@pytest.mark.backend
+def test_calls_the_quick_way_does_not_handle_go_taichis_way():
+    """numpy arrays, keyword arguments, fields as templates and arguments of the wrong type work, or fail,
+    as they do in Taichi."""
+    _quick_or_skip()
+
+    @_ti.ti.kernel
+    def scaled(a: _ti.ti.types.ndarray(), s: _ti.ti.f64, n: _ti.ti.i32):
+        for i in range(n):
+            a[i] = s * i
+
+    out = np.zeros(4)
+    for _ in range(2):
+        scaled(out, 2.0, 4)
+    np.testing.assert_array_equal(out, [0.0, 2.0, 4.0, 6.0])
+    a = _ti.ti.ndarray(_ti.ti.f64, 4)
+    for _ in range(2):
+        scaled(a, s=3.0, n=4)
+    np.testing.assert_array_equal(a.to_numpy(), [0.0, 3.0, 6.0, 9.0])
+    with pytest.raises(Exception, match="cannot be converted|Argument"):
+        scaled(a, 3.0, 2.5)
+    with pytest.raises(Exception, match="missing"):
+        scaled(a, 3.0)
+    field = _ti.ti.field(_ti.ti.f64, 3)
+
+    @_ti.ti.kernel
+    def fill(f: _ti.ti.template(), value: _ti.ti.f64):
+        for i in f:
+            f[i] = value
+
+    for value in (1.5, 2.5):
+        fill(field, value)
+    np.testing.assert_array_equal(field.to_numpy(), [2.5, 2.5, 2.5])
+
+
+def test_quick_calls_survive_a_new_runtime(tmp_path):
+    """After ti.init again (which frees every array and compiled instance) a kernel met before compiles and
+    launches anew, on the new arrays."""
+    script = tmp_path / "reinit.py"         # a file: Taichi reads a kernel's source
+    script.write_text("import numpy as np\nfrom solver._ti import ti, quick_kernel_calls\n"
+              "ti.init(arch=ti.cpu)\nassert quick_kernel_calls()\n"
+              "@ti.kernel\ndef add(a: ti.types.ndarray(), s: ti.f64) -> ti.f64:\n"
+              "    for i in range(a.shape[0]):\n        a[i] += s\n    return a[0]\n"
+              "for k in range(2):\n"
+              "    a = ti.ndarray(ti.f64, 3)\n    a.fill(1.0)\n"
+              "    r = [add(a, 0.5), add(a, 0.25), add(a, 0.25)]\n"
+              "    print(r, a.to_numpy().tolist())\n"
+              "    ti.init(arch=ti.cpu)\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    printed = [line for line in out.stdout.splitlines() if not line.startswith("[Taichi]")]
+    assert printed == ["[1.5, 1.75, 2.0] [2.0, 2.0, 2.0]"] * 2
