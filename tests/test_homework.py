@@ -317,6 +317,7 @@ def test_graded_tests_pass_on_the_solution(tmp_path):
     assert all(t["passed"] for t in report["tests"].values())
 
 
+@pytest.mark.slow
 def test_each_task_scores_without_the_tasks_after_it(tmp_path):
     """Tasks 1-3 done and Chebyshev still a TODO: the sweep's tests pass (no kernel of the sweep compiles
     the Chebyshev TODO) and only the Chebyshev tests fail, with their TODO."""
