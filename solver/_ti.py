@@ -170,14 +170,16 @@ def quick_kernel_calls() -> bool:
     array's element type, dimensions and gradient, written as small integers cached on the array) the
     compiled code. A call whose arguments it was not written for (keyword arguments, defaults left out,
     numpy or torch arrays, arrays with gradients, fields or compound values as templates, matrix or
-    struct arguments or return values, autodiff, a kernel that prints, a tape or forward mode running) goes Taichi's own
-    way, as does the first call of each instance, which compiles it; so do all calls after ``ti.init``
-    again until each instance has been met once more. Errors are Taichi's own.
+    struct arguments or return values, autodiff, a kernel that prints, a tape or forward mode running)
+    goes Taichi's own way, as does the first call of each instance, which compiles it; so do all calls
+    after ``ti.init`` again until each instance has been met once more. Errors are Taichi's own.
 
     Returns whether it is in place (False where this Taichi launches kernels otherwise, e.g. another
     version or Quadrants: nothing is changed then)."""
     from importlib import import_module
 
+    if NAME != "taichi" or tuple(getattr(ti, "__version__", ()))[:3] != (1, 7, 4):
+        return False                # written against 1.7.4's `Kernel.__call__`, `launch_kernel` and mapper
     try:
         kernel_impl = import_module(f"{NAME}.lang.kernel_impl")
         impl = import_module(f"{NAME}.lang.impl")

@@ -221,6 +221,15 @@ def test_calls_the_quick_way_does_not_handle_go_taichis_way():
     np.testing.assert_array_equal(field.to_numpy(), [2.5, 2.5, 2.5])
 
 
+def _printed_by(script: Path) -> list:
+    """The lines a script prints (Taichi's own left out), run in a fresh process with the repository
+    importable; fails with its error output if it fails."""
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)})
+    assert out.returncode == 0, out.stderr[-2000:]
+    return [line for line in out.stdout.splitlines() if not line.startswith("[Taichi]")]
+
+
 def test_quick_calls_survive_a_new_runtime(tmp_path):
     """After ti.init again (which frees every array and compiled instance) a kernel met before compiles and
     launches anew, on the new arrays."""
@@ -234,8 +243,16 @@ def test_quick_calls_survive_a_new_runtime(tmp_path):
               "    r = [add(a, 0.5), add(a, 0.25), add(a, 0.25)]\n"
               "    print(r, a.to_numpy().tolist())\n"
               "    ti.init(arch=ti.cpu)\n")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
-                         env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)})
-    assert out.returncode == 0, out.stderr[-2000:]
-    printed = [line for line in out.stdout.splitlines() if not line.startswith("[Taichi]")]
-    assert printed == ["[1.5, 1.75, 2.0] [2.0, 2.0, 2.0]"] * 2
+    assert _printed_by(script) == ["[1.5, 1.75, 2.0] [2.0, 2.0, 2.0]"] * 2
+
+
+def test_quick_calls_leave_another_taichi_version_alone(tmp_path):
+    """Written against Taichi 1.7.4's internals: with another version number nothing is replaced."""
+    if _ti.NAME != "taichi":
+        pytest.skip(f"{_ti.NAME} is not Taichi")
+    script = tmp_path / "other_version.py"
+    script.write_text("from solver._ti import ti, quick_kernel_calls\n"
+                      "from taichi.lang.kernel_impl import Kernel\n"
+                      "call = Kernel.__call__\nti.__version__ = (1, 7, 5)\n"
+                      "print(quick_kernel_calls(), Kernel.__call__ is call, hasattr(Kernel, 'quick_calls'))\n")
+    assert _printed_by(script) == ["False True False"]
