@@ -313,7 +313,11 @@ def table(rows: list, columns: list, title: str = None, fmt=None) -> str:
 
 def provenance(argv=None, root=ROOT) -> str:
     """One line saying which command produced a result, when, and on what: the commit of the checkout at
-    root, marked "with uncommitted changes" when a tracked file outside benchmarks/results differs from it."""
+    root, marked "with uncommitted changes" when a tracked file outside benchmarks/results differs from it,
+    and whether the optional CHOLMOD was installed (the direct Newton's fastest linear solver:
+    `LinearSolver.AUTO` takes it when it is, so Newton timings depend on it)."""
+    from solver.newton.direct import DirectSolver, LinearSolver
+
     argv = sys.argv if argv is None else argv
     try:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True,
@@ -327,7 +331,8 @@ def provenance(argv=None, root=ROOT) -> str:
         commit = "?"
     cmd = "python -m benchmarks." + os.path.splitext(os.path.basename(argv[0]))[0] + " " + " ".join(argv[1:])
     return (f"`{cmd.strip()}` on {datetime.date.today().isoformat()}, commit {commit or '?'}, "
-            f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores")
+            f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+            f"{'with' if DirectSolver.installed(LinearSolver.CHOLMOD) else 'without'} CHOLMOD (cvxopt)")
 
 
 def progress(iterable=None, total=None, desc=None, disable=False):

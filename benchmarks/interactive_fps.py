@@ -3,7 +3,9 @@
 The window advances every panel of its scene by one time step per frame (`PanelSim.step`), with or
 without the Newton ghost (x* of the same step, one converged Newton solve per panel and frame). This
 times exactly that loop headless, without GGUI, for a scene, and also one `Simulation` build of the
-scene's first mesh after the first (kernels and adjacency shared, nothing compiled).
+scene's first mesh after the first (kernels and adjacency shared, nothing compiled). ghost_solver names
+the linear solver of the ghosts' Newton solves (`LinearSolver.AUTO`'s choice: CHOLMOD where the optional
+cvxopt is installed, so say which install a quoted figure comes from).
 
     python -m benchmarks.interactive_fps --out benchmarks/results/interactive_fps
     python -m benchmarks.interactive_fps --quick
@@ -15,8 +17,16 @@ import numpy as np
 from benchmarks.common import (print_written, init_taichi, output_folder, parser, positive, provenance, table, write_csv)
 
 OUTPUTS = ("interactive_fps.csv", "summary.md")
-COLUMNS = ["scene", "panels", "ghosts", "frames", "median_frame_ms", "frames_per_second", "first_build_s",
-           "second_build_s"]
+COLUMNS = ["scene", "panels", "ghosts", "ghost_solver", "frames", "median_frame_ms", "frames_per_second",
+           "first_build_s", "second_build_s"]
+
+
+def ghost_solvers(panels) -> str:
+    """The linear solvers of the panels' Newton ghosts, '+'-joined in panel order without repeats."""
+    from solver.newton.direct import global_newton
+
+    problems = [p.sim.step_problem() for p in panels]
+    return "+".join(dict.fromkeys(global_newton(q.tets, q.free).direct.kind.value for q in problems))
 
 
 def measure(scene_name: str, frames: int, ghosts: bool):
@@ -42,7 +52,8 @@ def measure(scene_name: str, frames: int, ghosts: bool):
             p.step()
         seconds.append(time.perf_counter() - t)
     median = float(np.median(seconds))
-    return dict(scene=scene_name, panels=len(panels), ghosts="on" if ghosts else "off", frames=frames,
+    return dict(scene=scene_name, panels=len(panels), ghosts="on" if ghosts else "off",
+                ghost_solver=ghost_solvers(panels) if ghosts else "none", frames=frames,
                 median_frame_ms=1e3 * median, frames_per_second=1.0 / median, first_build_s=first_build,
                 second_build_s=second_build)
 

@@ -231,6 +231,7 @@ def section_convergence(out, full, size):
     import numpy as np
 
     import solver
+    from solver.newton.direct import global_newton
 
     plt = _pyplot()
     meshes = [(20, 2, 2), (40, 4, 4)] + ([(80, 8, 8)] if full else [])
@@ -313,7 +314,8 @@ def section_convergence(out, full, size):
          "numpy Newton: iterations, whole solve"], timing_rows) + (
         f"\n\n*Measured by `.venv/bin/python -m demo figures` on {time.strftime('%Y-%m-%d')}, {os.cpu_count()} CPU "
         f"cores, load average {os.getloadavg()[0]:.1f} when the section started. VBD: time in "
-        "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size.*")
+        "`run_iterations` only; Newton: its whole solve, to a step below 1e-10 of the bar's size, its linear "
+        f"solver {global_newton(problem.tets, problem.free).direct.kind.value}.*")
     return numbers
 
 

@@ -14,7 +14,7 @@ Four kinds of marked text are kept in sync, each replaced by what it names:
   newton_seconds | 1000*.1f -->11.4<!--/n-->``. PATH is a CSV file (WHERE: ``column=value`` pairs
   separated by ``;`` that select exactly one row) or a JSON file (WHERE empty, COLUMN a key).
   FORMAT is ``[SCALE*]SPEC``: the value times SCALE, written with the Python format SPEC or with
-  ``sci`` (two significant digits, ``1.4e-2``);
+  ``sci`` (two significant digits, ``1.4e-2``), or ``text``: the value as the file has it (a name);
 * ``<!-- begin include: PATH -->`` ... ``<!-- end include -->``: the whole text of a results file
   (the benchmarks' ``summary.md`` tables).
 
@@ -134,6 +134,8 @@ def result_value(spec: str, root: Path = REPO_ROOT) -> str:
         if not rows[0].get(column):
             raise ResultError(f"{path}: no value in column {column!r} of the row {where!r}")
         raw = rows[0][column]
+    if fmt == "text":
+        return str(raw)
     try:
         return _format(float(raw), fmt)
     except ValueError:

@@ -202,6 +202,10 @@ def test_provenance_names_the_commit_and_says_when_the_code_was_edited(tmp_path)
     assert f"commit {commit}, " in provenance(["throughput.py"], root=tmp_path)
     (tmp_path / "solver.py").write_text("a = 2\n")
     assert f"commit {commit} with uncommitted changes, " in provenance(["throughput.py"], root=tmp_path)
+    # Newton timings depend on whether the optional CHOLMOD is there: the line says
+    from solver.newton.direct import DirectSolver, LinearSolver
+    cholmod = "with" if DirectSolver.installed(LinearSolver.CHOLMOD) else "without"
+    assert provenance(["throughput.py"], root=tmp_path).endswith(f" CPU cores, {cholmod} CHOLMOD (cvxopt)")
 
 
 @pytest.mark.slow
@@ -632,7 +636,12 @@ def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == \
         f"wrote interactive_fps.csv, summary.md into {tmp_path}"
-    assert len(rows(tmp_path / "interactive_fps.csv")) == 2
+    from solver.newton.direct import DirectSolver, LinearSolver
+    off, on = rows(tmp_path / "interactive_fps.csv")
+    # the ghosts' solver is named, so that a quoted figure says which install it comes from (bars < 10^4 dofs)
+    assert (off["ghosts"], off["ghost_solver"]) == ("off", "none")
+    assert (on["ghosts"], on["ghost_solver"]) == \
+        ("on", "cholmod" if DirectSolver.installed(LinearSolver.CHOLMOD) else "qdldl")
 
 
 @pytest.mark.backend

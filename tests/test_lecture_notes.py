@@ -145,6 +145,16 @@ def test_numbers_from_results_files_are_checked_and_filled(tmp_path):
         "run python -m demo figures --only excerpts"]
 
 
+def test_a_text_marker_quotes_the_value_as_the_file_has_it(tmp_path):
+    notes, chapter = _results_project(tmp_path)
+    chapter.write_text("<!--n: results/runs.csv | case=bar, moving | method | text -->Newton<!--/n-->\n")
+    assert notes_sync.stale({}, notes, root=tmp_path) == [
+        "01-x.md: 'Newton' should be 'VBD' (results/runs.csv | case=bar, moving | method | text); "
+        "run python -m demo figures --only excerpts"]
+    notes_sync.update_notes({}, notes, root=tmp_path)
+    assert chapter.read_text() == "<!--n: results/runs.csv | case=bar, moving | method | text -->VBD<!--/n-->\n"
+
+
 @pytest.mark.parametrize("marker, message", [
     ("<!--n: results/runs.csv | method=VBD | seconds | .2f -->1<!--/n-->", "2 rows match 'method=VBD', not one"),
     ("<!--n: results/none.csv | method=VBD | seconds | .2f -->1<!--/n-->", "results file results/none.csv does not exist"),
