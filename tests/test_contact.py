@@ -73,12 +73,13 @@ def _cases(d):
     }
 
 
+# Three kernels, not one: Taichi's optimisation of one kernel holding all of this (two 12x12 Hessians
+# beside the forces) took 40-48 s to compile here, longer than the three apart.
 @ti.kernel
-def _evaluate(kind: ti.types.ndarray(), X: ti.types.ndarray(), X_n: ti.types.ndarray(), k: ti.f64, r: ti.f64,
-              mu: ti.f64, eps_u: ti.f64, d_out: ti.types.ndarray(), w_out: ti.types.ndarray(),
-              energy: ti.types.ndarray(), force: ti.types.ndarray(), block: ti.types.ndarray(),
-              friction: ti.types.ndarray(), friction_block: ti.types.ndarray(), gradient: ti.types.ndarray(),
-              hessian: ti.types.ndarray(), exact_hessian: ti.types.ndarray()):
+def _vertex_terms(kind: ti.types.ndarray(), X: ti.types.ndarray(), X_n: ti.types.ndarray(), k: ti.f64,
+                  r: ti.f64, mu: ti.f64, eps_u: ti.f64, d_out: ti.types.ndarray(), w_out: ti.types.ndarray(),
+                  force: ti.types.ndarray(), block: ti.types.ndarray(), friction: ti.types.ndarray(),
+                  friction_block: ti.types.ndarray()):
     for p in range(kind.shape[0]):
         d, w, n = C.pair_geometry(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], ti.f64)
         d_out[p] = d
@@ -90,15 +91,27 @@ def _evaluate(kind: ti.types.ndarray(), X: ti.types.ndarray(), X_n: ti.types.nda
             w_out[p, j] = w[j]
             force[p, j], block[p, j] = C.contact_force_hessian(d, w[j], n, k, r)
             friction[p, j], friction_block[p, j] = C.contact_friction(u, n, w[j], ti.abs(db), mu, eps_u, ti.f64)
+
+
+@ti.kernel
+def _energy_gradient(kind: ti.types.ndarray(), X: ti.types.ndarray(), k: ti.f64, r: ti.f64,
+                     energy: ti.types.ndarray(), gradient: ti.types.ndarray()):
+    for p in range(kind.shape[0]):
         b, g = C.pair_energy_gradient(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, ti.f64)
-        H = C.pair_hessian(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, 0, ti.f64)
-        H_exact = C.pair_hessian(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, 1, ti.f64)
         energy[p] = b
         for a in ti.static(range(12)):
             gradient[p, a] = g[a]
-            for c in ti.static(range(12)):
-                hessian[p, a, c] = H[a, c]
-                exact_hessian[p, a, c] = H_exact[a, c]
+
+
+@ti.kernel
+def _hessian(kind: ti.types.ndarray(), X: ti.types.ndarray(), k: ti.f64, r: ti.f64, exact: ti.i32,
+             hessian: ti.types.ndarray()):
+    for p in range(kind.shape[0]):
+        c = C.pair_curvature(kind[p], X[p, 0], X[p, 1], X[p, 2], X[p, 3], k, r, exact)
+        for j, l in ti.ndrange(4, 4):
+            block = C.pair_hessian_block(c, j, l)
+            for a, b in ti.static(ti.ndrange(3, 3)):
+                hessian[p, 3 * j + a, 3 * l + b] = block[a, b]
 
 
 def taichi_twin(kind, X, X_n, contact, h):
@@ -115,8 +128,12 @@ def taichi_twin(kind, X, X_n, contact, h):
                force=vec((P, 4)), block=mat((P, 4)), friction=vec((P, 4)), friction_block=mat((P, 4)),
                gradient=ti.ndarray(ti.f64, (P, 12)), hessian=ti.ndarray(ti.f64, (P, 12, 12)),
                exact_hessian=ti.ndarray(ti.f64, (P, 12, 12)))
-    _evaluate(args["kind"], args["X"], args["X_n"], contact.stiffness, contact.radius, contact.friction,
-              contact.friction_speed * h, **out)
+    k, r = contact.stiffness, contact.radius
+    _vertex_terms(args["kind"], args["X"], args["X_n"], k, r, contact.friction, contact.friction_speed * h,
+                  out["d_out"], out["w_out"], out["force"], out["block"], out["friction"], out["friction_block"])
+    _energy_gradient(args["kind"], args["X"], k, r, out["energy"], out["gradient"])
+    _hessian(args["kind"], args["X"], k, r, 0, out["hessian"])
+    _hessian(args["kind"], args["X"], k, r, 1, out["exact_hessian"])
     return {name: a.to_numpy() for name, a in out.items()}
 
 

@@ -9,7 +9,7 @@ beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials
 then exactly that of the pairs found at the trial, as in the oracle.
 
 Every pair's energy b(d), gradient b'(d) (w (x) n) and Hessian come from `physics.contact`
-(`pair_energy_gradient`, `pair_hessian`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
+(`pair_energy_gradient`, `pair_curvature` and `pair_hessian_block`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
 (n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) in projected steps, and the exact one,
 with the curvature b'(d) d2d/dx2 of the distance, where the Newton tries its exact Hessian. The numpy `ContactTerm` of the
 oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms: each checks the other.
@@ -28,7 +28,7 @@ import numpy as np
 
 from .._ti import ti
 from ..mesh.tetmesh import TetMesh
-from ..physics.contact import pair_energy_gradient, pair_hessian
+from ..physics.contact import pair_curvature, pair_energy_gradient, pair_hessian_block
 from ..physics.contact_detection import ContactDetector
 
 
@@ -72,19 +72,21 @@ def contact_energy_gradient_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray
 def pair_blocks_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray(), vertices: ti.types.ndarray(), k: ti.f64,
                        r: ti.f64, first: ti.i32, full: ti.i32, exact: ti.i32, slot_of: ti.types.ndarray(),
                        slots: ti.types.ndarray()):
-    """Pair p's (kind (P,), vertices (P, 4)) Hessian at x (N, 3), exact or PSD (`pair_hessian`): its block
+    """Pair p's (kind (P,), vertices (P, 4)) Hessian at x (N, 3), exact or PSD (`pair_curvature`): its block
     of the ordered vertex pair (k, l) into slots[slot_of[first + p, 4 k + l]] (-1: a constrained vertex;
-    -2 - slot: above the diagonal, only written when full), as a tet's in `hessian._tet_blocks`."""
+    -2 - slot: above the diagonal, only written when full), as a tet's in `hessian._tet_blocks`. The 16
+    blocks are a loop, not unrolled: 1.5 s to compile instead of 10."""
     for p in range(kind.shape[0]):
-        H = pair_hessian(kind[p], _point(x, vertices[p, 0]), _point(x, vertices[p, 1]), _point(x, vertices[p, 2]),
-                         _point(x, vertices[p, 3]), k, r, exact, ti.f64)
-        for kl in ti.static(range(16)):
+        c = pair_curvature(kind[p], _point(x, vertices[p, 0]), _point(x, vertices[p, 1]), _point(x, vertices[p, 2]),
+                           _point(x, vertices[p, 3]), k, r, exact)
+        for kl in range(16):
             n = slot_of[first + p, kl]
             if n <= -2 and full != 0:
                 n = -2 - n
             if n >= 0:
-                for a, c in ti.static(ti.ndrange(3, 3)):
-                    slots[n, a, c] = H[3 * (kl // 4) + a, 3 * (kl % 4) + c]
+                block = pair_hessian_block(c, kl // 4, kl % 4)
+                for a, b in ti.static(ti.ndrange(3, 3)):
+                    slots[n, a, b] = block[a, b]
 
 
 class ContactPairs:

@@ -321,44 +321,59 @@ def free_directions(kind, w, dtype: ti.template()):
     return c0, c1, m
 
 
-@ti.func
-def distance_hessian(kind, x0, x1, x2, x3, d, w, n, dtype: ti.template()):
-    """d2d/dx2 (12x12) of a pair at distance d > 0 with weights w and normal n: phi_xx - phi_xu phi_uu^-1
-    phi_ux (module docstring), coordinates ordered vertex by vertex."""
-    c0, c1, m = free_directions(kind, w, dtype)
-    P = ti.Matrix.identity(dtype, 3) - n.outer_product(n)
-    A0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
-    A1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
-    PA0, PA1 = P @ A0, P @ A1
-    phi_uu = ti.Matrix([[A0.dot(PA0), A0.dot(PA1)], [A1.dot(PA0), A1.dot(PA1)]], dt=dtype) / d
-    if m < 2:                                   # unused parameters: identity rows, zero couplings
-        phi_uu[1, 1] = 1
-    if m < 1:
-        phi_uu[0, 0] = 1
-    inverse = phi_uu.inverse()
-    F = ti.Matrix.zero(dtype, 12, 2)            # phi_xu
-    for j in ti.static(range(4)):
-        for a in ti.static(range(3)):
-            F[3 * j + a, 0] = c0[j] * n[a] + w[j] * PA0[a] / d
-            F[3 * j + a, 1] = c1[j] * n[a] + w[j] * PA1[a] / d
-    H = -F @ inverse @ F.transpose()
-    for j, k in ti.static(ti.ndrange(4, 4)):
-        for a, b in ti.static(ti.ndrange(3, 3)):
-            H[3 * j + a, 3 * k + b] += w[j] * w[k] * P[a, b] / d
-    return H
+# What the 3x3 blocks of one pair's 12x12 Hessian are made of (`pair_curvature`, `pair_hessian_block`): weights
+# w (4,), normal n (3,), b''(d) in N/m, and b'(d) times the curvature of the distance d2d/dx2 = phi_xx - phi_xu
+# phi_uu^-1 phi_ux (module docstring) by parts: s = b'(d) in N (0 for the PSD Hessian), P_d = P / d (3x3), the
+# rows of phi_xu per vertex for the two free parameters, F0 and F1 (4x3), and phi_uu^-1 (2x2).
+PairCurvature = ti.types.struct(w=ti.types.vector(4, ti.f64), n=ti.types.vector(3, ti.f64), d2b=ti.f64, s=ti.f64,
+                                P_d=ti.types.matrix(3, 3, ti.f64), F0=ti.types.matrix(4, 3, ti.f64),
+                                F1=ti.types.matrix(4, 3, ti.f64), inverse=ti.types.matrix(2, 2, ti.f64))
 
 
 @ti.func
-def pair_hessian(kind, x0, x1, x2, x3, k, r, exact, dtype: ti.template()):
-    """The 12x12 Hessian of one pair's b(d(x)): the PSD b''(d) (w (x) n)(w (x) n)^T, plus b'(d) d2d/dx2
-    when exact (int, nonzero: the exact Hessian, indefinite); for the Taichi Newton."""
-    d, w, n = pair_geometry(kind, x0, x1, x2, x3, dtype)
+def pair_curvature(kind, x0, x1, x2, x3, k, r, exact):
+    """`PairCurvature` of one pair (float64); with exact (int, nonzero) the curvature term b'(d) d2d/dx2
+    (indefinite) is kept, else s = 0 and the blocks are those of the PSD b''(d) (w (x) n)(w (x) n)^T.
+    The Hessian is never formed as one 12x12 matrix: Taichi took 10 s to compile one that was."""
+    d, w, n = pair_geometry(kind, x0, x1, x2, x3, ti.f64)
     db, d2b = barrier_derivatives(d, k, r)
-    J = distance_gradient(w, n, dtype)
-    H = d2b * J.outer_product(J)
+    c = PairCurvature(w=w, n=n, d2b=d2b, s=0.0, P_d=ti.Matrix.zero(ti.f64, 3, 3), F0=ti.Matrix.zero(ti.f64, 4, 3),
+                      F1=ti.Matrix.zero(ti.f64, 4, 3), inverse=ti.Matrix.zero(ti.f64, 2, 2))
     if exact != 0 and db != 0:
-        H += db * distance_hessian(kind, x0, x1, x2, x3, d, w, n, dtype)
-    return H
+        c0, c1, m = free_directions(kind, w, ti.f64)
+        P = ti.Matrix.identity(ti.f64, 3) - n.outer_product(n)
+        A0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
+        A1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
+        PA0, PA1 = P @ A0, P @ A1
+        phi_uu = ti.Matrix([[A0.dot(PA0), A0.dot(PA1)], [A1.dot(PA0), A1.dot(PA1)]], dt=ti.f64) / d
+        if m < 2:                                   # unused parameters: identity rows, zero couplings
+            phi_uu[1, 1] = 1
+        if m < 1:
+            phi_uu[0, 0] = 1
+        c.s = db
+        c.P_d = P / d
+        c.F0 = c0.outer_product(n) + w.outer_product(PA0) / d
+        c.F1 = c1.outer_product(n) + w.outer_product(PA1) / d
+        c.inverse = phi_uu.inverse()
+    return c
+
+
+@ti.func
+def _row(M, j):
+    """Row j (runtime) of a 4x3 matrix as a 3-vector."""
+    return ti.Vector([M[j, 0], M[j, 1], M[j, 2]], dt=ti.f64)
+
+
+@ti.func
+def pair_hessian_block(c: ti.template(), j, l):
+    """The 3x3 block (vertex j, vertex l) of the pair Hessian described by c (`pair_curvature`):
+    b'' w_j w_l n n^T + s (w_j w_l P / d - sum_uv phi_uu^-1[u, v] F_u[j] F_v[l]^T); j, l may be runtime."""
+    wj, wl = c.w[j], c.w[l]
+    F0j, F1j, F0l, F1l = _row(c.F0, j), _row(c.F1, j), _row(c.F0, l), _row(c.F1, l)
+    G0 = c.inverse[0, 0] * F0l + c.inverse[0, 1] * F1l
+    G1 = c.inverse[1, 0] * F0l + c.inverse[1, 1] * F1l
+    curvature = wj * wl * c.P_d - F0j.outer_product(G0) - F1j.outer_product(G1)
+    return c.d2b * wj * wl * c.n.outer_product(c.n) + c.s * curvature
 
 
 # ---------------------------------------------------------------------------------------------
@@ -512,7 +527,7 @@ def free_directions_np(kind, w):
 
 def distance_hessian_np(kind, X):
     """(P, 12, 12) d2d/dx2 of pairs with `PairKind` kind (P,) and positions X (P, 4, 3), d > 0; as
-    `distance_hessian`."""
+    `pair_curvature`."""
     X = np.asarray(X, dtype=np.float64)
     d, w, n = pair_geometry_np(kind, X)
     c, m = free_directions_np(kind, w)
@@ -530,7 +545,7 @@ def distance_hessian_np(kind, X):
 
 def pair_hessian_np(kind, X, contact: Contact, exact: bool = False):
     """(P, 12, 12) pair Hessian, coordinates ordered vertex by vertex: the PSD b''(d) (w (x) n)(w (x) n)^T,
-    plus b'(d) d2d/dx2 when exact (the exact Hessian of b(d(x)), indefinite); as `pair_hessian`."""
+    plus b'(d) d2d/dx2 when exact (the exact Hessian of b(d(x)), indefinite); as `pair_curvature` and `pair_hessian_block`."""
     d, w, n = pair_geometry_np(kind, X)
     db, d2b = barrier_derivatives_np(d, contact.stiffness, contact.radius)
     J = (w[:, :, None] * n[:, None, :]).reshape(-1, 12)
