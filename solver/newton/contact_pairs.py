@@ -9,10 +9,11 @@ beyond the radius, where b = 0 (the rule of `vbd.contact_state`); further trials
 then exactly that of the pairs found at the trial, as in the oracle.
 
 Every pair's energy b(d), gradient b'(d) (w (x) n) and Hessian come from `physics.contact`
-(`pair_energy_gradient`, `pair_curvature` and `pair_hessian_block`), evaluated in the kernels below: the PSD b''(d) (w (x) n)(w (x) n)^T
-(n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) in projected steps, and the exact one,
-with the curvature b'(d) d2d/dx2 of the distance, where the Newton tries its exact Hessian. The numpy `ContactTerm` of the
-oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums its own terms: each checks the other.
+(`pair_energy_gradient`, `pair_curvature` and `pair_hessian_block`), evaluated in the kernels below: the PSD
+b''(d) (w (x) n)(w (x) n)^T (n held fixed: VBD [Chen et al. 2024] Sec. 3.5, OGC [Chen et al. 2025]) in projected
+steps, and the exact one, with the curvature b'(d) d2d/dx2 of the distance, where the Newton tries its exact
+Hessian. The numpy `ContactTerm` of the oracle finds its pairs with its own k-d tree (`find_pairs_np`) and sums
+its own terms: each checks the other.
 
 - `energy_gradient(x, g)`: E_c(x), with dE_c/dx added to g at the free vertices: every pair writes its
   gradient to a buffer, then every vertex sums those of its pairs (the detector's incidence lists), so the
@@ -28,14 +29,8 @@ import numpy as np
 
 from .._ti import ti
 from ..mesh.tetmesh import TetMesh
-from ..physics.contact import pair_curvature, pair_energy_gradient, pair_hessian_block
+from ..physics.contact import pair_curvature, pair_energy_gradient, pair_hessian_block, row3
 from ..physics.contact_detection import ContactDetector
-
-
-@ti.func
-def _point(x: ti.template(), i):
-    """Row i of an (N, 3) ndarray as a vector."""
-    return ti.Vector([x[i, 0], x[i, 1], x[i, 2]], dt=ti.f64)
 
 
 @ti.kernel
@@ -49,8 +44,8 @@ def contact_energy_gradient_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray
     total = 0.0
     for p in range(n_pairs):
         v = pair[p]
-        b, grad = pair_energy_gradient(kind[p], _point(x, v[0]), _point(x, v[1]), _point(x, v[2]),
-                                       _point(x, v[3]), k, r, ti.f64)
+        b, grad = pair_energy_gradient(kind[p], row3(x, v[0]), row3(x, v[1]), row3(x, v[2]), row3(x, v[3]), k, r,
+                                       ti.f64)
         total += b
         for a in ti.static(range(12)):
             pair_gradient[p, a] = grad[a]
@@ -77,8 +72,8 @@ def pair_blocks_kernel(x: ti.types.ndarray(), kind: ti.types.ndarray(), vertices
     -2 - slot: above the diagonal, only written when full), as a tet's in `hessian._tet_blocks`. The 16
     blocks are a loop, not unrolled: 1.5 s to compile instead of 10."""
     for p in range(kind.shape[0]):
-        c = pair_curvature(kind[p], _point(x, vertices[p, 0]), _point(x, vertices[p, 1]), _point(x, vertices[p, 2]),
-                           _point(x, vertices[p, 3]), k, r, exact)
+        c = pair_curvature(kind[p], row3(x, vertices[p, 0]), row3(x, vertices[p, 1]), row3(x, vertices[p, 2]),
+                           row3(x, vertices[p, 3]), k, r, exact)
         for kl in range(16):
             n = slot_of[first + p, kl]
             if n <= -2 and full != 0:

@@ -359,8 +359,8 @@ def pair_curvature(kind, x0, x1, x2, x3, k, r, exact):
 
 
 @ti.func
-def _row(M, j):
-    """Row j (runtime) of a 4x3 matrix as a 3-vector."""
+def row3(M: ti.template(), j):
+    """Row j (j may be runtime) of a (rows, 3) local matrix or ndarray as a float64 3-vector."""
     return ti.Vector([M[j, 0], M[j, 1], M[j, 2]], dt=ti.f64)
 
 
@@ -369,7 +369,7 @@ def pair_hessian_block(c: ti.template(), j, l):
     """The 3x3 block (vertex j, vertex l) of the pair Hessian described by c (`pair_curvature`):
     b'' w_j w_l n n^T + s (w_j w_l P / d - sum_uv phi_uu^-1[u, v] F_u[j] F_v[l]^T); j, l may be runtime."""
     wj, wl = c.w[j], c.w[l]
-    F0j, F1j, F0l, F1l = _row(c.F0, j), _row(c.F1, j), _row(c.F0, l), _row(c.F1, l)
+    F0j, F1j, F0l, F1l = row3(c.F0, j), row3(c.F1, j), row3(c.F0, l), row3(c.F1, l)
     G0 = c.inverse[0, 0] * F0l + c.inverse[0, 1] * F1l
     G1 = c.inverse[1, 0] * F0l + c.inverse[1, 1] * F1l
     curvature = wj * wl * c.P_d - F0j.outer_product(G0) - F1j.outer_product(G1)
@@ -545,7 +545,8 @@ def distance_hessian_np(kind, X):
 
 def pair_hessian_np(kind, X, contact: Contact, exact: bool = False):
     """(P, 12, 12) pair Hessian, coordinates ordered vertex by vertex: the PSD b''(d) (w (x) n)(w (x) n)^T,
-    plus b'(d) d2d/dx2 when exact (the exact Hessian of b(d(x)), indefinite); as `pair_curvature` and `pair_hessian_block`."""
+    plus b'(d) d2d/dx2 when exact (the exact Hessian of b(d(x)), indefinite); as `pair_curvature` and
+    `pair_hessian_block`."""
     d, w, n = pair_geometry_np(kind, X)
     db, d2b = barrier_derivatives_np(d, contact.stiffness, contact.radius)
     J = (w[:, :, None] * n[:, None, :]).reshape(-1, 12)
