@@ -195,6 +195,17 @@ def spectral_radius(text):
     return value
 
 
+def voxel_resolution(text):
+    """An argparse type: voxels along a surface's longest side, within the range the voxeliser accepts."""
+    from solver.mesh.voxelize import RESOLUTION_RANGE
+
+    lowest, highest = RESOLUTION_RANGE
+    value = _float(text)
+    if value is None or not math.isfinite(value) or value != int(value) or not lowest <= value <= highest:
+        raise argparse.ArgumentTypeError(f"expected a whole number from {lowest} to {highest}, got {text!r}")
+    return int(value)
+
+
 def init_taichi(threads=None, kernel_profiler=False, arch="cpu"):
     """ti.init on the CPU (or CUDA) in float64, optionally with a thread cap and the kernel profiler.
     A Taichi already running with these settings (a test calling `main()`) is kept, since ti.init frees

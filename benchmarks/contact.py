@@ -2,7 +2,8 @@
 
 Three measurements, all float64 on the CPU, ratios taken within one run (issue 17's performance targets):
   * piles of 1, 8, 27 and 64 soft balls (the sphere asset voxelised at resolution 3, 114 tets each: the
-    bodies issue 17 names) dropped into a fixed open box of five slabs, friction 0.3: median step time, full
+    bodies issue 17 names; and as "fine ball pile" at --fine-resolution, 816 tets each at 6, whose
+    surface is a smaller share of the ball) dropped into a fixed open box of five slabs, friction 0.3: median step time, full
     detections and refreshes of the bounds per step and active contacts (pairs closer than the radius)
     once settled: stepped until the mean vertex speed is under 1 mm/s, checked every second, at most
     --settle steps (settle_s: how long it took, in whole seconds; at the cap the pile did not settle, as
@@ -31,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import (init_taichi, output_folder, parser, positive, print_written, progress, provenance,
-                               seconds_per_call, sync, table, write_csv)
+                               seconds_per_call, sync, table, voxel_resolution, write_csv)
 
 OUTPUTS = ("contact.csv", "contact.png", "summary.md")
-COLUMNS = ["measurement", "bodies", "tets", "contacts", "settle_s", "mean_speed", "detections_per_step",
+COLUMNS = ["measurement", "bodies", "body_tets", "tets", "contacts", "settle_s", "mean_speed", "detections_per_step",
            "refreshes_per_step", "step_ms", "apart_step_ms", "step_ratio", "pairs", "detect_ms", "detect_ns_per_pair",
            "sweep_ms", "break_even_ns_per_pair", "detect_per_sweep", "ns_per_tet_iter_none", "ns_per_tet_iter_contact",
            "contact_per_none"]
@@ -43,6 +44,7 @@ ROUNDS = 3                                            # interleaved timings of t
 SOFT = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
 SETTLE_CHECK, SETTLED = 60, 1e-3                       # steps between checks; m/s: a pile is settled below this
 BALL_ASSET = Path(__file__).resolve().parent.parent / "assets" / "sphere.obj"
+BALL_RESOLUTION, FINE_RESOLUTION = 3, 6                 # voxels across the ball asset: 114 and 816 tets a ball
 
 
 def _walls(solver, k):
@@ -56,19 +58,20 @@ def _walls(solver, k):
             solver.box_mesh(size=(W - 2 * GAP, T, H), cells=(n, 1, k + 1), origin=(GAP, W, GAP))]
 
 
-def _ball(solver):
-    """The sphere asset voxelised at resolution 3 (114 tets, 56 vertices) and scaled to a ball of diameter
-    SIZE whose box's corner is at the origin, as a cube's."""
+def _ball(solver, resolution):
+    """The sphere asset voxelised at `resolution` (3: 114 tets, 56 vertices; 6: 816 tets, 251 vertices) and
+    scaled to a ball of diameter SIZE whose box's corner is at the origin, as a cube's."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", solver.MeshQualityWarning)
-        ball = solver.load_mesh(str(BALL_ASSET), resolution=3)
+        ball = solver.load_mesh(str(BALL_ASSET), resolution=resolution)
     x = ball.vertices - ball.vertices.min(axis=0)
     return solver.TetMesh(x * (SIZE / np.ptp(x, axis=0).max()), ball.tets)
 
 
-def pile_scene(solver, k, apart, balls=False):
-    """k^3 cubes (or balls of the same width) in layers of k x k inside the box (apart=False) or spread out
-    above it, 2 pitches apart (apart=True); returns (mesh, number of wall vertices)."""
+def pile_scene(solver, k, apart, balls=0):
+    """k^3 cubes (or, where balls is a voxel resolution, balls of the same width) in layers of k x k inside
+    the box (apart=False) or spread out above it, 2 pitches apart (apart=True); returns (mesh, number of
+    wall vertices)."""
     walls = _walls(solver, k)
     top = (k + 1) * 0.1 + 0.1
     if apart:
@@ -78,7 +81,7 @@ def pile_scene(solver, k, apart, balls=False):
         origins = [(0.04 + PITCH * i + 0.01 * (layer % 2), 0.04 + PITCH * j, 0.01 + 0.1 * layer)
                    for layer in range(k) for i in range(k) for j in range(k)]
     if balls:
-        ball = _ball(solver)
+        ball = _ball(solver, balls)
         bodies = [solver.TetMesh(ball.vertices + np.asarray(o), ball.tets) for o in origins]
     else:
         bodies = [solver.box_mesh(size=(SIZE,) * 3, cells=(2, 2, 2), origin=o) for o in origins]
@@ -124,10 +127,12 @@ def _detect_and_sweep(solver, sim, mesh, fixed, min_seconds):
     return min(detect_s), min(sweep_s), detector.n_pairs
 
 
-def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
+def measure_pile(solver, k, settle, timed, min_seconds, measurement, balls=0):
+    """One pile row: k^3 bodies (`pile_scene`) settled, then stepped in turn with the same bodies set apart."""
     contact = solver.Contact(stiffness=1e4, radius=0.005, friction=0.3)
     mat = solver.Material(**SOFT)
     mesh, n_walls = pile_scene(solver, k, apart=False, balls=balls)
+    body_tets = (mesh.n_tets - sum(w.n_tets for w in _walls(solver, k))) // k ** 3
     fixed = np.arange(n_walls)
     sim = solver.Simulation(mesh, mat, dt=1 / 60, fixed=fixed, iterations=20, contact=contact)
     settled = 0
@@ -144,7 +149,7 @@ def measure_pile(solver, k, settle, timed, min_seconds, balls=False):
     contacts = sim.contact_count()
     mean_speed = float(np.linalg.norm(sim.velocities[n_walls:], axis=1).mean())
     detect_s, sweep_s, pairs = _detect_and_sweep(solver, sim, mesh, fixed, min_seconds)
-    return dict(measurement="ball pile" if balls else "cube pile", bodies=k ** 3, tets=mesh.n_tets, contacts=contacts,
+    return dict(measurement=measurement, bodies=k ** 3, body_tets=body_tets, tets=mesh.n_tets, contacts=contacts,
                 settle_s=settled * sim.dt, mean_speed=mean_speed, detections_per_step=detections,
                 refreshes_per_step=refreshes, step_ms=step_s * 1e3, apart_step_ms=apart_s * 1e3, step_ratio=ratio,
                 **_detection_columns(detect_s, sweep_s, pairs))
@@ -203,24 +208,42 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
-    for shape, marks in (("balls", ("^-", "v--")), ("cubes", ("o-", "s--"))):
+    fig, (a, ratio, b) = plt.subplots(1, 3, figsize=(16, 4.5))
+    shapes = (("balls", ("^-", "v--"), "C0"), ("fine balls", ("D-", "d--"), "C2"), ("cubes", ("o-", "s--"), "C1"))
+    for shape, marks, colour in shapes:
         piles = [r for r in rows if r["measurement"] == f"{shape[:-1]} pile"]
-        a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], marks[0], label=f"pile of {shape}")
-        a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], marks[1],
+        if not piles:
+            continue
+        name = f"{shape} of {piles[0]['body_tets']} tets"
+        a.plot([r["contacts"] for r in piles], [r["step_ms"] for r in piles], marks[0], color=colour,
+               label=f"pile of {name}")
+        a.plot([r["contacts"] for r in piles], [r["apart_step_ms"] for r in piles], marks[1], color=colour,
                label=f"same {shape} apart")
         for r in piles:
-            a.annotate(f"{r['bodies']} {shape}", (r["contacts"], r["step_ms"]), fontsize=8)
+            a.annotate(f"{r['bodies']}", (r["contacts"], r["step_ms"]), fontsize=8)
+        ratio.plot([r["bodies"] for r in piles], [r["step_ratio"] for r in piles], marks[0], color=colour, label=name)
     a.set_xlabel("active contacts (pairs closer than the radius)")
     a.set_ylabel("ms per step (20 iterations)")
     a.set_title("Step time against active contacts")
-    a.legend()
-    labels = [f"{r['measurement']}\n{r['tets']} tets" for r in rows]
-    b.bar(labels, [r["detect_per_sweep"] for r in rows])
-    b.axhline(1.0, color="k", lw=0.8, ls=":")
-    b.set_ylabel("one detection / one sweep without contact")
+    a.legend(fontsize=7)
+    ratio.axhline(2.0, color="k", lw=0.8, ls=":", label="target")
+    ratio.set_xscale("log")
+    bodies = sorted({r["bodies"] for r in rows if r["measurement"].endswith("pile")})
+    ratio.set_xticks(bodies, [str(n) for n in bodies])
+    ratio.minorticks_off()
+    ratio.set_xlabel("bodies in the pile")
+    ratio.set_ylabel("pile step / the same bodies set apart")
+    ratio.set_title("A settled pile against its bodies apart")
+    ratio.legend(fontsize=7)
+    colours = {f"{shape[:-1]} pile": colour for shape, _, colour in shapes}
+    labels = [f"{r['measurement']}, {r['tets']} tets" for r in rows]
+    b.barh(labels, [r["detect_per_sweep"] for r in rows], color=[colours.get(r["measurement"], "C7") for r in rows])
+    b.axvline(1.0, color="k", lw=0.8, ls=":", label="target")
+    b.invert_yaxis()
+    b.set_xlabel("one detection / one sweep without contact")
     b.set_title("Detection against one elastic sweep")
-    b.tick_params(axis="x", labelsize=7)
+    b.tick_params(axis="y", labelsize=7)
+    b.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -236,17 +259,22 @@ def main(argv=None):
     p.add_argument("--min-seconds", type=positive(float), default=0.5, quick=0.02, help="least time per timing")
     p.add_argument("--cells", type=positive(int), default=8, quick=2,
                    help="cells per side of each of the 8 set-apart bodies (6 tets per cell; 8: 24,576 tets)")
+    p.add_argument("--fine-resolution", type=voxel_resolution, default=FINE_RESOLUTION, quick=4,
+                   help="voxels across the ball asset for the fine ball piles (6: 816 tets a ball, 4: 192)")
     args = p.parse_args(argv)
     out = output_folder(args, OUTPUTS)
     piles = (1, 2) if args.quick else (1, 2, 3, 4)
+    fine_piles = (1,) if args.quick else piles
     settle, steps, min_seconds, cells = args.settle, args.steps, args.min_seconds, args.cells
     init_taichi()
     import solver
 
     rows = []
-    for balls in (True, False):
-        for k in progress(piles, desc="ball piles" if balls else "cube piles", disable=args.no_progress):
-            rows.append(measure_pile(solver, k, settle, steps, min_seconds, balls=balls))
+    shapes = (("ball pile", BALL_RESOLUTION, piles), ("fine ball pile", args.fine_resolution, fine_piles),
+              ("cube pile", 0, piles))
+    for measurement, balls, ks in shapes:
+        for k in progress(ks, desc=f"{measurement}s", disable=args.no_progress):
+            rows.append(measure_pile(solver, k, settle, steps, min_seconds, measurement, balls=balls))
     rows.append(measure_apart(solver, cells, min_seconds))
     rows.append(measure_touching(solver, cells, min_seconds))
     text = table(rows, COLUMNS, title="Contact cost (float64, CPU; ratios within this run)")

@@ -28,8 +28,8 @@ import numpy as np
 
 from benchmarks.common import (fail, init_taichi, output_folder, parser, positive, print_written, progress,
                                provenance, seconds_per_call, sync, table, write_csv)
-from benchmarks.contact import (SOFT, _detect_and_sweep, _detection_columns, measure_apart, measure_touching,
-                                pile_scene)
+from benchmarks.contact import (BALL_RESOLUTION, SOFT, _detect_and_sweep, _detection_columns, measure_apart,
+                                measure_touching, pile_scene)
 from benchmarks.throughput import FULL_SIZES, QUICK_SIZES
 
 OUTPUTS = ("cuda.csv", "summary.md")
@@ -57,7 +57,7 @@ def measure_sweep(solver, cells, precision, min_seconds):
 
 def measure_falling_pile(solver, k, steps, min_seconds):
     """k^3 balls falling into the box for `steps` steps (see the module's docstring)."""
-    mesh, n_walls = pile_scene(solver, k, apart=False, balls=True)
+    mesh, n_walls = pile_scene(solver, k, apart=False, balls=BALL_RESOLUTION)
     fixed = np.arange(n_walls)
     sim = solver.Simulation(mesh, solver.Material(**SOFT), dt=1 / 60, fixed=fixed, iterations=20,
                             contact=solver.Contact(stiffness=1e4, radius=0.005, friction=0.3))

@@ -147,7 +147,11 @@ def test_contact_quick(tmp_path):
         assert all(int(r["contacts"]) > 0 for r in piles), "a settled pile touches its box"
         assert int(piles[1]["contacts"]) > int(piles[0]["contacts"])
     assert int(balls[1]["tets"]) > int(cubes[1]["tets"])
-    piles = balls + cubes
+    assert [int(r["body_tets"]) for r in (balls[0], cubes[0])] == [114, 48]
+    (fine,) = [r for r in data if r["measurement"] == "fine ball pile"]      # --quick: resolution 4, one ball
+    assert int(fine["bodies"]) == 1 and int(fine["body_tets"]) == 192 and int(fine["contacts"]) > 0
+    assert int(fine["tets"]) - int(fine["body_tets"]) == int(balls[0]["tets"]) - 114, "the same box"
+    piles = balls + cubes + [fine]
     (apart,) = [r for r in data if r["measurement"].startswith("apart")]
     assert int(apart["contacts"]) == 0, "bodies set apart have no pair closer than the radius"
     (touching,) = [r for r in data if r["measurement"].startswith("touching")]
@@ -417,6 +421,7 @@ BAD_VALUES = [
     ("contact", ["--steps", "0"], "--steps: expected a positive whole number"),
     ("contact", ["--min-seconds", "-1"], "--min-seconds: expected a positive number"),
     ("contact", ["--cells", "0"], "--cells: expected a positive whole number"),
+    ("contact", ["--fine-resolution", "1"], "--fine-resolution: expected a whole number from 2 to 1000"),
     ("newton_contact", ["--frames", "-3"], "--frames: expected a positive whole number"),
     ("translation_lag", ["--settle", "0"], "--settle: expected a positive whole number"),
     ("render_speed", ["--frames", "0"], "--frames: expected a positive whole number"),

@@ -15,6 +15,9 @@ import numpy as np
 from ..errors import MeshError, MeshWarning
 from .cells import kuhn_tets, oriented_tets
 
+RESOLUTION_RANGE = (2, 1000)
+"""Voxels along a surface's longest side that `tetrahedralize_surface` accepts (least, most)."""
+
 
 def inside_voxels(vertices: np.ndarray, faces: np.ndarray, origin: np.ndarray, pitch: float,
                   dims) -> np.ndarray:
@@ -70,8 +73,9 @@ def tetrahedralize_surface(vertices: np.ndarray, faces: np.ndarray, resolution: 
 
     Returns (vertices (N, 3), tets (M, 4)) on a conforming lattice, every tet positively oriented.
     """
-    if not isinstance(resolution, (int, np.integer)) or not 2 <= resolution <= 1000:
-        raise MeshError(f"voxel resolution must be an integer from 2 to 1000, got {resolution!r}")
+    lowest, highest = RESOLUTION_RANGE
+    if not isinstance(resolution, (int, np.integer)) or not lowest <= resolution <= highest:
+        raise MeshError(f"voxel resolution must be an integer from {lowest} to {highest}, got {resolution!r}")
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     pitch = float((hi - lo).max()) / resolution
     # A tiny irrational shift keeps rays off mesh vertices and edges of axis-aligned inputs.
