@@ -257,7 +257,10 @@ class SimulationState:
 
     def set_velocities(self, v: np.ndarray, previous=None) -> None:
         """Overwrite the velocities v_n (N, 3) in m/s. previous: the velocities v_{n-1} (N, 3) of the
-        step before, which the adaptive initial guess reads; by default v - h g, i.e. free fall."""
+        step before, which the adaptive initial guess reads; by default v - h g, i.e. free fall, so the
+        adaptive guess of the next step is y = x_n + h v_n + h^2 g. To resume bodies at rest or in
+        contact, pass the velocities of the step before, or use `save_state` / `restore_state`, which
+        resume a run exactly."""
         v = self._checked_state(v, "velocities")
         v_prev = v - self.dt * self.gravity if previous is None else self._checked_state(previous, "previous")
         self._set_rows({L.V: v, L.V_PREV: v_prev})
