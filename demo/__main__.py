@@ -167,7 +167,7 @@ def render(args):
     from . import scenes
     from .compose import FrameComposer
     from .export import ExportFormat, export_mesh
-    from .runner import SceneRunner
+    from .runner import SceneRunner, refuse_overrides
     from .video import VideoFormat, VideoWriter
 
     scene = scenes.get(args.scene)
@@ -180,6 +180,7 @@ def render(args):
         if frames > MAX_FRAMES:
             raise DemoError(f"--duration {args.duration:g} s at {fps} fps is {frames} frames, more than {MAX_FRAMES}; "
                             "shorten --duration or lower --fps")
+    refuse_overrides(scene, youngs_modulus=args.youngs_modulus, iterations=args.iterations, dt=args.dt)
     video_format, export_format = VideoFormat(args.video), ExportFormat(args.export)
     width, height = args.size
     out = args.out if args.out is not None else Path("out") / scene.name

@@ -599,7 +599,7 @@ def main(argv=None):
                         description="Regenerate every figure, table and number of lecture_notes/ and the "
                                     "numbers the READMEs quote from benchmarks/results/.",
                         formatter_class=cli.HelpFormatter)
-    parser.add_argument("--only", default="", help="comma-separated sections to run (see --list); "
+    parser.add_argument("--only", default=None, help="comma-separated sections to run (see --list; default: all); "
                                                    "'excerpts' only refreshes the code excerpts and the "
                                                    "numbers from results files")
     parser.add_argument("--list", action="store_true", help="list the sections")
@@ -618,7 +618,10 @@ def main(argv=None):
             print(name)
         print("excerpts")
         return 0
-    selected = [s for s in args.only.split(",") if s] or list(SECTIONS)
+    selected = [s for s in args.only.split(",") if s] if args.only is not None else list(SECTIONS)
+    if not selected:
+        raise DemoError(f"--only {args.only!r} names no section; name one or more of {', '.join(SECTIONS)}, excerpts "
+                        "(see --list), or leave --only out to run them all")
     unknown = [s for s in selected if s not in SECTIONS and s != "excerpts"]
     if unknown:
         raise DemoError(f"unknown section(s) {', '.join(unknown)}; known: {', '.join(SECTIONS)}, excerpts")
@@ -627,6 +630,9 @@ def main(argv=None):
     if not chapters(notes):
         raise DemoError(f"no lecture-note chapters (NN-*.md) in {_shown(notes)}; pass --notes with the "
                         f"lecture_notes folder")
+    if args.check and not out.is_dir():
+        raise DemoError(f"no figures folder {args.out or _shown(out)} to check; pass --out with the figures folder "
+                        "(default: lecture_notes/figures)")
     numbers_path = out / NUMBERS
     numbers = json.loads(numbers_path.read_text()) if numbers_path.exists() else {}
     width, height = args.size
@@ -641,7 +647,11 @@ def main(argv=None):
             print(f"notes and READMEs are up to date ({len(notes_sync.documents(notes))} documents), and so are "
                   f"the figures of {len(sections)} section(s)")
         return 1 if problems else 0
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise DemoError(f"cannot create the figures folder {args.out or _shown(out)}: {e.strerror}; "
+                        "choose another --out") from None
     started = time.perf_counter()
     for name in sections:
         from .cli import start_taichi

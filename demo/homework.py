@@ -594,7 +594,7 @@ def describe_not_implemented(error: BaseException) -> str:
 # ---------------------------------------------------------------------------------------------
 # Grading for marks: python -m demo homework grade SUBMISSION
 # ---------------------------------------------------------------------------------------------
-GRADE_TIMEOUT_S = 900
+GRADE_TIMEOUT_S = 300      # default of --timeout: a task's graded tests take seconds, a minute with cold compiles
 
 
 @dataclass(frozen=True)
@@ -706,13 +706,15 @@ class Grader:
 
     Nothing else of a submission is used: its conftest.py, ini files, grading/ and other files never reach
     the tree the grader runs in, and pytest runs with a clean environment (no plugin autoload, no
-    PYTEST_ADDOPTS or PYTHONPATH) from that tree. Up to `jobs` such runs go at once, each in its own tree.
+    PYTEST_ADDOPTS or PYTHONPATH) from that tree. Up to `jobs` such runs go at once, each in its own tree;
+    a run still going after `timeout` seconds (a submission's endless loop) is stopped and scores 0.
     """
 
-    def __init__(self, scratch: Path, root: Path = REPO_ROOT, jobs: int = 1):
+    def __init__(self, scratch: Path, root: Path = REPO_ROOT, jobs: int = 1, timeout: float = GRADE_TIMEOUT_S):
         self.root = root.resolve()
         self.scratch = Path(scratch)
         self.jobs = jobs
+        self.timeout = timeout
         self.starter = self.scratch / "starter"
         generate(self.starter, root=self.root, quiet=True)
         self.pristine = {task.id: {file: (self.starter / file).read_text(encoding="utf-8") for file in _task_files(task)}
@@ -750,9 +752,10 @@ class Grader:
                    "-c", str(tree / "pytest.ini"), *[str(t.relative_to(tree)) for t in tests]]
         try:
             result = subprocess.run(command, cwd=tree, env=env, capture_output=True, text=True,
-                                    timeout=GRADE_TIMEOUT_S)
+                                    timeout=self.timeout)
         except subprocess.TimeoutExpired:
-            return TaskGrade(task.id, 0.0, task.points, 0, 0, f"the graded tests ran past {GRADE_TIMEOUT_S} s")
+            return TaskGrade(task.id, 0.0, task.points, 0, 0, f"the graded tests ran past {self.timeout:g} s "
+                                                               "(an endless loop?); stopped")
         if not report.exists():
             last = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
             return TaskGrade(task.id, 0.0, task.points, 0, 0,
@@ -832,8 +835,9 @@ def _check_gradebook(json_file: Path, overwrite: bool):
 
 
 def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REPO_ROOT, jobs: int = 1,
-          overwrite: bool = False) -> dict:
-    """Grade a starter folder or a class (a folder of them), `jobs` graded runs at once; print each task's
+          overwrite: bool = False, timeout: float = GRADE_TIMEOUT_S) -> dict:
+    """Grade a starter folder or a class (a folder of them), `jobs` graded runs at once, each stopped after
+    `timeout` seconds (0 points for its task); print each task's
     points and `total: NN/100` last. Every folder of a class is graded or reported: one that is not a
     starter (see `submissions`) gets one line saying why and 0 points. Returns {name: {"tasks": {task:
     TaskGrade fields}, "earned", "total"}, plus "not_graded": why for a folder that was not graded};
@@ -871,7 +875,7 @@ def grade(submission: Path, json_file: Path = None, tasks=None, root: Path = REP
         report(name, grades)
 
     with tempfile.TemporaryDirectory(prefix="vbd-grade-") as scratch:
-        Grader(Path(scratch), root=root, jobs=jobs).grade_all(folders, tasks, done=done)
+        Grader(Path(scratch), root=root, jobs=jobs, timeout=timeout).grade_all(folders, tasks, done=done)
     while waiting:
         not_graded(waiting.pop(0))
     if json_file is not None:
@@ -904,10 +908,16 @@ def grade_main(argv) -> int:
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, metavar="N",
                         help="graded runs at once, each a pytest process of about 170 MB (default: this machine's "
                              "CPU count, %(default)s)")
+    parser.add_argument("--timeout", type=float, default=GRADE_TIMEOUT_S, metavar="SECONDS",
+                        help="stop a task's graded run after this long and give it 0 points (a submission's "
+                             "endless loop)")
     args = parser.parse_args(argv)
     if args.jobs < 1:
         parser.error(f"--jobs must be 1 or more, got {args.jobs}")
-    book = grade(args.submission, args.json, args.task, jobs=args.jobs, overwrite=args.overwrite)
+    if not 0 < args.timeout < float("inf"):
+        parser.error(f"--timeout must be a positive number of seconds, got {args.timeout:g}")
+    book = grade(args.submission, args.json, args.task, jobs=args.jobs, overwrite=args.overwrite,
+                 timeout=args.timeout)
     missed = [name for name, entry in book.items() if "not_graded" in entry]
     if missed:
         print(f"not graded: {', '.join(missed)} ({len(missed)} of {len(book)} folders, 0 points each; "
@@ -939,7 +949,7 @@ def main(argv=None):
             print(f"{task.id:14s} {task.points:3d} points  {task.title}")
             for r in regions:
                 if r.task is task:
-                    print(f"{'':20s}{r.path.as_posix()}:{r.start}-{r.end} {r.function} ({len(r.lines)} lines)")
+                    print(f"{'':20s}{r.path.as_posix()}:{r.start}-{r.end} {r.function} ({len(r.lines)} line{'s' if len(r.lines) != 1 else ''})")
         return 0
     generate(args.out, overwrite=args.overwrite)
     return 0

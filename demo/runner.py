@@ -531,6 +531,19 @@ class RestPanel:
         return PanelState(self.start, self.faces, rgb, None, lines, None)
 
 
+def refuse_overrides(scene, live=False, youngs_modulus=None, iterations=None, dt=None):
+    """A one-line `DemoError` where `scene` has nothing for one of these settings (None: not given) to
+    change: a rest scene (unless live, simulated in the window), or iterations in a scene that shows one
+    iteration or one colour per frame. Checked before anything is built or written."""
+    if (youngs_modulus, iterations, dt) == (None, None, None):
+        return
+    if scene.advance is Advance.REST and not live:
+        raise DemoError(f"scene {scene.name!r} shows the rest shape; it has no material, iterations or dt to change")
+    if iterations is not None and scene.advance in (Advance.ITERATIONS, Advance.COLOURS):
+        raise DemoError(f"scene {scene.name!r} shows one {scene.advance.value[:-1]} per frame, so --iterations has "
+                        "nothing to change; pass --frames for more of them")
+
+
 class SceneRunner:
     """All panels of a scene, the one frame loop of the headless frames and the interactive window:
     ``advance()`` produces the next frame's panel states; ``step``, ``iterate`` and ``states`` are its
@@ -565,9 +578,7 @@ class SceneRunner:
         panel's label then names its settings."""
         fields = {k: v for k, v in dict(youngs_modulus=youngs_modulus, iterations=iterations, dt=dt).items()
                   if v is not None}
-        if fields and not all(isinstance(p, PanelSim) for p in self.panels):
-            raise DemoError(f"scene {self.scene.name!r} shows the rest shape; it has no material, iterations or "
-                            "dt to change")
+        refuse_overrides(self.scene, live=all(isinstance(p, PanelSim) for p in self.panels), **fields)
         for p in self.panels if fields else ():
             p.apply(dataclasses.replace(p.settings, **fields))
 

@@ -2,8 +2,8 @@
 bounds from the pairs L of the last detection instead of detecting again. Judged in numpy at every
 iteration of two cubes driven into each other: the bounds follow the refresh's formula, the pairs of L
 closer than the radius are exactly those a fresh detection finds, the pairs the sweep skips are beyond
-the radius (each vertex walks exactly its live pairs, or only the near ones while no vertex has moved
-past the horizon), and no bound lets two primitives meet. The sweep's
+the radius (each vertex walks exactly its live pairs, or only the near ones while no vertex of them has
+moved past the horizon), and no bound lets two primitives meet. The sweep's
 cheaper skip, by how far the vertices moved since the refresh (`contact_sweep.may_be_within`), is checked
 against exact distances."""
 import numpy as np
@@ -101,11 +101,14 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch(monkeypatch)
             paired = np.diff(offsets) > 0
             moves = np.linalg.norm(x - x_det, axis=1)[paired]
             np.testing.assert_allclose(stage._moved.to_numpy()[paired], moves, rtol=1e-12, atol=1e-18)
-            # and it walks only the near ones while no vertex with pairs has moved past the horizon
-            crossed = stage._crossed.to_numpy()[0]
-            assert crossed == 1 or moves.max() <= horizon * contact.radius
-            near_only_seen += int(crossed == 0 and (near_end < live_end).any())
-            far_walked_seen += int(crossed == 1)
+            # and a vertex walks only its near ones unless a vertex of one of its live pairs has moved past the
+            # horizon (`raise_alerts`, this iteration's stamp): the live pairs it skips are beyond the radius
+            alerted = stage._alert.to_numpy() == stage._stamp
+            far = np.linalg.norm(x - x_det, axis=1) > horizon * contact.radius
+            live_pairs = np.flatnonzero(live == 1)
+            assert alerted[vertices[live_pairs[far[vertices[live_pairs]].any(axis=1)]]].all()
+            near_only_seen += int((~alerted & (near_end < live_end)).any())
+            far_walked_seen += int(alerted.any() and (near_end < live_end).any())
             active_seen = max(active_seen, len(known))
             # within their bounds no two primitives can meet: the pairs of L, and every pair between the
             # bodies up to 5 cm apart at x_det
@@ -145,11 +148,11 @@ def test_the_serial_and_parallel_contact_sweeps_give_the_same_steps():
 
 
 def test_walking_only_the_near_pairs_and_leaving_out_refreshes_change_no_step(monkeypatch):
-    """Two cubes 7 mm apart settling on a fixed slab. The sweep walks only the near live pairs (closer than
-    r + 2 horizon) while no vertex has moved farther than the horizon, and a step leaves out the refresh at
-    x_n where it would neither detect nor clamp the guess (`contact_sweep.guess_within_bounds`); the steps
-    are bit for bit those of a sweep that walks every live pair (horizon 0: every move crosses it) and
-    refreshes at every x_n (on the CPU; to round-off on CUDA)."""
+    """Two cubes 7 mm apart settling on a fixed slab. A vertex walks only its near live pairs (closer than
+    r + 2 horizon) while no vertex of its live pairs has moved farther than the horizon, and a step leaves out
+    the refresh at x_n where it would neither detect nor clamp the guess (`contact_sweep.guess_within_bounds`);
+    the steps are bit for bit those of a sweep that walks every live pair (horizon 0: every move crosses it)
+    and refreshes at every x_n (on the CPU; to round-off on CUDA)."""
     slab = solver.box_mesh(size=(0.3, 0.3, 0.05), cells=(3, 3, 1), origin=(-0.1, -0.1, -0.05))
     cubes = [solver.box_mesh(size=(0.1,) * 3, cells=(2, 2, 2), origin=(x, 0, 0.004)) for x in (0, 0.107)]
     mesh = solver.merge_meshes([slab, *cubes])
@@ -168,7 +171,8 @@ def test_walking_only_the_near_pairs_and_leaving_out_refreshes_change_no_step(mo
             for _ in range(10):
                 sim.run_iterations(1)
                 live_end, near_end = stage.live_end.to_numpy(), stage.near_end.to_numpy()
-                near_only += int(stage._crossed.to_numpy()[0] == 0 and (near_end < live_end).any())
+                alerted = stage._alert.to_numpy() == stage._stamp
+                near_only += int((~alerted & (near_end < live_end)).any())
             sim.end_step()
         runs.append((sim.positions, near_only, stage.refreshes + stage.detections, sim.contact_count()))
     (x_short, near_only, refreshes, count), (x_every, none, every_refresh, _) = runs

@@ -90,6 +90,8 @@ def test_existing_user_file_is_never_touched(tmp_path, capsys):
     (["render", "--dt", "1/0"], "outside (0, 0.1] s"),
     (["render", "--dt", "soon"], "expected a time step in s"),
     (["render", "colouring", "--dt", "0.01"], "shows the rest shape"),
+    (["render", "probe", "--iterations", "500"], "shows one iteration per frame, so --iterations has nothing"),
+    (["render", "sweep_by_colour", "--iterations", "5"], "shows one colour per frame, so --iterations has nothing"),
     (["render", "--fps", "241"], "241 fps is more than 240"),
     (["render", "--fps", "100000"], "100000 fps is more than 240"),
     (["render", "--frames", "10001"], "10001 frames is more than 10000"),
@@ -287,3 +289,12 @@ def test_one_frame_is_singular(tmp_path, capsys):
     assert main(["render", "colouring", "--size", "64x48", "--out", str(out), "--video", "none"]) == 0
     text = capsys.readouterr().out
     assert f"wrote 1 frame to {out}/frame_0000.png in " in text and "frames" not in text
+
+
+def test_the_readme_names_every_scene_demo_list_shows():
+    """The README's scene list had left out three of the scenes `demo list` prints."""
+    from demo.scenes import SCENES
+
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    listed = readme.split("Scenes (`demo list`):", 1)[1].split("\n\n", 1)[0]
+    assert [name for name in SCENES if f"`{name}`" not in listed] == []

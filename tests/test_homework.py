@@ -539,7 +539,7 @@ def fake_starter(folder: Path, marker=True) -> Path:
 class FullMarksGrader:
     """Stands in for `homework.Grader`: every submission it is given gets full points."""
 
-    def __init__(self, scratch, root, jobs):
+    def __init__(self, scratch, root, jobs, timeout):
         pass
 
     def grade_all(self, submissions, tasks=None, done=None):

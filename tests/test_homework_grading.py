@@ -86,6 +86,21 @@ def test_a_planted_bug_costs_only_its_task(grader, starter, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_submission_that_never_returns_is_stopped_at_the_timeout_and_scores_0(starter, tmp_path):
+    """An endless wait in one task's function (a student's infinite loop) stops that task's graded run at
+    the grader's timeout, with 0 points and the reason, instead of holding the class up; the other task
+    graded beside it keeps its points."""
+    submission = plant(as_solution(starter, tmp_path / "looping"), "exercises/analysis.py",
+                       "x[free] + omega * np.linalg.solve(", "__import__('time').sleep(3600) or x[free] + omega * "
+                       "np.linalg.solve(")
+    timeout = 40
+    grades = {g.task: g for g in homework.Grader(tmp_path / "grader", jobs=2, timeout=timeout).grade(
+        submission, tasks=["analysis", "coloring"])}
+    assert grades["analysis"].earned == 0 and f"ran past {timeout} s" in grades["analysis"].reason
+    assert grades["coloring"].earned == grades["coloring"].points
+
+
+@pytest.mark.slow
 def test_every_planted_bug_costs_only_its_task(grader, starter, tmp_path):
     """Each bug (one per task, and one per term of f_i and H_i) in its own submission, the class graded
     in parallel: each loses points in its own task only, and its first failure names what is wrong."""

@@ -270,8 +270,8 @@ def test_check_honours_only(tmp_path, capsys):
         entry["inputs"] = "0" * 64 if name == "sweeps" else notes_sync.section_inputs(name, (960, 420), False)
     (out / notes_sync.MANIFEST).write_text(json.dumps(manifest))
     check = ["--check", "--out", str(out), "--notes", str(NOTES)]
-    for only, code in [("excerpts", 0), ("propagation", 0), ("propagation,excerpts", 0), ("sweeps", 1), ("", 1)]:
-        assert figures.main(check + ["--only", only]) == code, only
+    for only, code in [("excerpts", 0), ("propagation", 0), ("propagation,excerpts", 0), ("sweeps", 1), (None, 1)]:
+        assert figures.main(check + (["--only", only] if only is not None else [])) == code, only
         printed = capsys.readouterr().out
         assert ("section sweeps:" in printed) == (code == 1) and printed.count("section ") == code, (only, printed)
         if only == "excerpts":
@@ -283,6 +283,9 @@ def test_check_honours_only(tmp_path, capsys):
     assert any("drawn by no section" in line for line in notes_sync.stale_figures(["propagation"]))
     for only in ("nosuch", "excerpts,nosuch"):
         with pytest.raises(DemoError, match="unknown section.* nosuch; known: colouring"):
+            figures.main(check + ["--only", only])
+    for only in ("", ","):         # once meant every section, and redrew them all: now named as the mistake
+        with pytest.raises(DemoError, match="names no section; name one or more of colouring"):
             figures.main(check + ["--only", only])
 
 
@@ -298,3 +301,13 @@ def test_documented_commands_use_the_venv_python():
         text = notes_sync.INCLUDE.sub("", path.read_text())      # included results record how they were run
         bare = re.findall(r"(?:^|[`\s(])python3? -m (?!venv\b)[\w.]+", text, flags=re.M)
         assert not bare, f"{path.name}: {bare[:3]}"
+
+
+@pytest.mark.skipif(not Path("/proc/self").exists(), reason="needs /proc, where no folder can be made")
+def test_a_figures_folder_that_cannot_be_made_is_a_one_line_error(tmp_path):
+    """--out where no folder can be made raised a traceback from mkdir; --check with a folder that does not
+    exist blamed a number missing from numbers.json."""
+    with pytest.raises(DemoError, match="cannot create the figures folder /proc/vbd-figures: .*; choose another --out"):
+        figures.main(["--out", "/proc/vbd-figures", "--only", "excerpts"])
+    with pytest.raises(DemoError, match="no figures folder .*missing to check; pass --out with the figures folder"):
+        figures.main(["--check", "--out", str(tmp_path / "missing")])

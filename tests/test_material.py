@@ -140,7 +140,8 @@ def test_small_strain_limit_is_linear_elasticity(nu):
 @pytest.mark.parametrize("kwargs", [
     dict(youngs_modulus=-1.0, poisson_ratio=0.3), dict(youngs_modulus=1e4, poisson_ratio=0.5),
     dict(youngs_modulus=1e4, poisson_ratio=-1.0), dict(youngs_modulus=float("nan"), poisson_ratio=0.3),
-    dict(youngs_modulus=1e4, poisson_ratio=0.3, density=0.0), dict(youngs_modulus="soft", poisson_ratio=0.3)])
+    dict(youngs_modulus=1e4, poisson_ratio=0.3, density=0.0), dict(youngs_modulus="soft", poisson_ratio=0.3),
+    dict(youngs_modulus=True, poisson_ratio=0.3), dict(youngs_modulus=1e4, poisson_ratio=False)])
 def test_nonsense_material_parameters_are_refused(kwargs):
     with pytest.raises(solver.ConfigError, match="youngs_modulus|poisson_ratio|density"):
         solver.Material(**kwargs)

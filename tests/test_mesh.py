@@ -219,6 +219,49 @@ def test_a_path_that_is_not_a_path_is_a_config_error(tmp_path, call):
         call(solver.box_mesh(cells=(1, 1, 1)))
 
 
+BOX = solver.box_mesh(cells=(1, 1, 1))
+
+
+@pytest.mark.parametrize("mesh, point_data, match", [
+    ("m", None, "needs a TetMesh or a \\(vertices, tets\\) pair, got str"),
+    ((np.zeros((4, 2)), BOX.tets), None, r"vertices must be an \(N, 3\) array of finite numbers, got shape \(4, 2\)"),
+    ((BOX.vertices, BOX.tets + 100), None, r"tets must be an \(M, 4\) array of indices below 8"),
+    ((BOX.vertices, BOX.tets.astype(float)), None, r"tets must be an \(M, 4\) array of indices"),
+    (BOX, {"a": np.zeros(3)}, r"point_data\['a'\] has shape \(3,\); it needs one row per vertex, \(8,\)"),
+    (BOX, "x", "point_data must be a dict of per-vertex arrays, got str"),
+])
+def test_save_mesh_refuses_what_it_cannot_write_in_one_line(tmp_path, mesh, point_data, match):
+    path = tmp_path / "out.vtu"
+    with pytest.raises(solver.MeshError, match=match):
+        solver.save_mesh(mesh, path, point_data=point_data)
+    assert not path.exists()
+
+
+@pytest.mark.parametrize("build, match", [
+    (lambda: solver.box_mesh(size="big", cells=(1, 1, 1)), "box size must be three positive lengths in m, got 'big'"),
+    (lambda: solver.box_mesh(cells=(100000,) * 3), "more than 10,000,000; use fewer cells"),
+    (lambda: solver.TetMesh([[0, 0, 0], [1, 0]], BOX.tets[:1]), "its rows differ in length"),
+    (lambda: solver.TetMesh(BOX.vertices + 1j, BOX.tets), "vertices must be real numbers"),
+    (lambda: solver.TetMesh(BOX.vertices, BOX.tets, original_index=np.array([7])),
+     r"original_index must hold one index per vertex, \(8,\), got shape \(1,\)"),
+])
+def test_mesh_builders_refuse_bad_arguments_in_one_line(build, match):
+    with pytest.raises(solver.MeshError, match=match):
+        build()
+
+
+@pytest.mark.parametrize("name", ["box.xdmf", "box.h5m"])
+def test_a_format_that_needs_h5py_says_so(tmp_path, name):
+    try:
+        import h5py  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        pytest.skip("h5py is installed: these formats are written")
+    with pytest.raises(solver.MeshError, match="needs the Python package h5py; pip install h5py"):
+        solver.save_mesh(BOX, tmp_path / name)
+
+
 def test_a_bytes_path_is_a_path(tmp_path):
     mesh = solver.box_mesh(cells=(2, 1, 1))
     path = os.fsencode(tmp_path / "bar.vtk")

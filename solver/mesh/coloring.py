@@ -19,7 +19,7 @@ import numpy as np
 from .._ti import ti
 
 from ..backend import ensure_taichi
-from ..errors import MeshError, enum_value
+from ..errors import ConfigError, MeshError, enum_value
 from ..todo import require_implemented
 from .tetmesh import tet_indices
 from .topology import vertex_neighbours
@@ -161,7 +161,12 @@ def _remember(cache_key, colors, seconds, cached) -> Coloring:
 
 
 def is_valid_coloring(tets: np.ndarray, colors: np.ndarray) -> bool:
-    """True when every vertex has a colour >= 0 and the 4 vertices of every tet differ."""
+    """True when every vertex has a colour >= 0 and the 4 vertices of every tet differ; tets (M, 4), colors
+    (N,) int, one per vertex (fewer than the tets use is a `ConfigError`)."""
+    tets, colors = np.asarray(tets), np.asarray(colors)
+    if tets.size and (colors.ndim != 1 or len(colors) <= tets.max()):
+        raise ConfigError(f"colors must hold one colour per vertex, at least {tets.max() + 1} for these tets, "
+                          f"got shape {colors.shape}")
     if (colors < 0).any():
         return False
     c = np.sort(colors[tets], axis=1)

@@ -136,13 +136,20 @@ def _validated(vertices, tets, original_index):
     Vertices no tet uses are dropped before any check (a NaN there does no harm); every negatively
     ordered tet is reordered on its own; only a mesh that still overlaps itself is rejected.
     """
-    vertices = np.asarray(vertices)
+    try:
+        vertices = np.asarray(vertices)
+    except ValueError:                  # ragged rows
+        raise MeshError("vertices must be an (N, 3) array, but its rows differ in length; pass 3D points") from None
     if vertices.ndim != 2 or vertices.shape[1] != 3 or vertices.shape[0] == 0:
         raise MeshError(f"vertices must be an (N, 3) array, got shape {vertices.shape}; pass 3D points")
+    if not (np.issubdtype(vertices.dtype, np.integer) or np.issubdtype(vertices.dtype, np.floating)):
+        raise MeshError(f"vertices must be real numbers (m), got an array of {vertices.dtype}")
     vertices = np.array(vertices, dtype=np.float64)
     n = vertices.shape[0]
     tets = tet_indices(tets, n)
     original = np.arange(n) if original_index is None else np.asarray(original_index, dtype=np.int64)
+    if original.shape != (n,):
+        raise MeshError(f"original_index must hold one index per vertex, ({n},), got shape {original.shape}")
     used = np.zeros(n, dtype=bool)
     used[tets.ravel()] = True
     if not used.all():
@@ -255,15 +262,24 @@ def _point(value, what: str) -> np.ndarray:
     return point
 
 
+MAX_BOX_CELLS = 10 ** 7     # `box_mesh`: 60 million tets, a few GB of arrays, already past what a step can take here
+
+
 def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> TetMesh:
     """A box of `size` metres starting at `origin`, with `cells` hexahedra per axis, 6 tets each."""
     origin = _point(origin, "box origin")
-    size = np.asarray(size, dtype=np.float64)
+    try:
+        size = np.asarray(size, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise MeshError(f"box size must be three positive lengths in m, got {size!r}") from None
     cells = np.asarray(cells)
     if size.shape != (3,) or not np.isfinite(size).all() or (size <= 0).any():
         raise MeshError(f"box size must be three positive lengths, got {size.tolist()}")
     if cells.shape != (3,) or not np.issubdtype(cells.dtype, np.integer) or (cells < 1).any():
         raise MeshError(f"box cells must be three integers >= 1, got {cells.tolist()}")
+    if int(np.prod(cells.astype(np.float64))) > MAX_BOX_CELLS:
+        raise MeshError(f"box cells {cells.tolist()} make {int(np.prod(cells.astype(np.float64))):,} cells (x 6 tets), "
+                        f"more than {MAX_BOX_CELLS:,}; use fewer cells")
     axes = [np.linspace(0.0, size[a], cells[a] + 1) + origin[a] for a in range(3)]
     vertices = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     cell_ijk = np.stack(np.meshgrid(*[np.arange(c) for c in cells], indexing="ij"), axis=-1).reshape(-1, 3)
@@ -421,6 +437,9 @@ def _read_volume(path):
     except meshio.ReadError as err:        # raised by meshio.read itself: no reader for this suffix
         raise MeshError(f"{path}: cannot read this file ({err}); use a format meshio reads, "
                         "e.g. .msh, .vtu, .vtk, .mesh or TetGen .node/.ele") from None
+    except ModuleNotFoundError as err:      # meshio's HDF5-based formats (.xdmf, .med, .h5m) need h5py
+        raise MeshError(f"{path}: reading this format needs the Python package {err.name}; "
+                        f"pip install {err.name}, or convert the file to .vtu or .msh") from None
     except (Exception, SystemExit) as err:  # the suffix's reader failed: it raised, or printed why and exited
         if isinstance(err, SystemExit):
             said = [line.removeprefix("Error: ") for line in log.getvalue().splitlines() if line.strip()]
@@ -481,6 +500,47 @@ def _read_surface(path):
     return np.asarray(surface.vertices, dtype=np.float64), np.asarray(surface.faces, dtype=np.int64)
 
 
+def _mesh_arrays(mesh):
+    """(vertices (N, 3) float64, tets (M, 4) int64) of a `TetMesh` or a `(vertices, tets)` pair, else a
+    one-line `MeshError` naming what is wrong."""
+    if isinstance(mesh, TetMesh):
+        return mesh.vertices.astype(np.float64), mesh.tets.astype(np.int64)
+    if not (isinstance(mesh, (tuple, list)) and len(mesh) == 2):
+        raise MeshError(f"save_mesh needs a TetMesh or a (vertices, tets) pair, got {type(mesh).__name__}")
+    try:
+        vertices = np.asarray(mesh[0], dtype=np.float64)
+        tets = np.asarray(mesh[1])
+    except (TypeError, ValueError):
+        raise MeshError("save_mesh: vertices must be an (N, 3) array of numbers and tets an (M, 4) array of "
+                        "vertex indices") from None
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.isfinite(vertices).all():
+        raise MeshError(f"save_mesh: vertices must be an (N, 3) array of finite numbers, got shape {vertices.shape}")
+    if (tets.ndim != 2 or tets.shape[1] != 4 or not np.issubdtype(tets.dtype, np.integer)
+            or (tets.size and (tets.min() < 0 or tets.max() >= len(vertices)))):
+        raise MeshError(f"save_mesh: tets must be an (M, 4) array of indices below {len(vertices)} (the vertex "
+                        f"count), got shape {tets.shape} of {tets.dtype}")
+    return vertices, tets.astype(np.int64)
+
+
+def _point_data(point_data, n: int) -> dict:
+    """`point_data` as {name: (n,) or (n, k) float array}, else a one-line `MeshError`."""
+    if point_data is None:
+        return {}
+    if not isinstance(point_data, dict):
+        raise MeshError(f"save_mesh: point_data must be a dict of per-vertex arrays, got {type(point_data).__name__}")
+    checked = {}
+    for name, values in point_data.items():
+        try:
+            values = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise MeshError(f"save_mesh: point_data[{name!r}] must be an array of numbers") from None
+        if values.ndim not in (1, 2) or len(values) != n:
+            raise MeshError(f"save_mesh: point_data[{name!r}] has shape {values.shape}; it needs one row per "
+                            f"vertex, ({n},) or ({n}, k)")
+        checked[str(name)] = values
+    return checked
+
+
 def save_mesh(mesh, path, point_data: dict | None = None) -> None:
     """Write a mesh (a `TetMesh` or a `(vertices, tets)` pair) with meshio.
 
@@ -489,15 +549,18 @@ def save_mesh(mesh, path, point_data: dict | None = None) -> None:
     """
     import meshio
 
-    vertices, tets = (mesh.vertices, mesh.tets) if isinstance(mesh, TetMesh) else mesh
+    vertices, tets = _mesh_arrays(mesh)
     path = _file_path(path)
+    point_data = _point_data(point_data, len(vertices))
     if path.lower().endswith(SURFACE_SUFFIXES):
         cells = [("triangle", boundary_faces(tets))]
     else:
-        cells = [("tetra", np.asarray(tets))]
+        cells = [("tetra", tets)]
     try:
-        meshio.write(path, meshio.Mesh(np.asarray(vertices, dtype=np.float64), cells,
-                                       point_data=point_data or {}))
+        meshio.write(path, meshio.Mesh(vertices, cells, point_data=point_data))
+    except ModuleNotFoundError as err:      # meshio's HDF5-based formats (.xdmf, .med, .h5m) need h5py
+        raise MeshError(f"{path}: writing this format needs the Python package {err.name}; "
+                        f"pip install {err.name}, or use .vtu or .msh") from None
     except OSError as err:
         raise MeshError(f"{path}: cannot write ({err.strerror}); check that the folder exists and is "
                         "writable") from None

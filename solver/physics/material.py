@@ -36,7 +36,8 @@ class Material:
     def __post_init__(self):
         for name in ("youngs_modulus", "poisson_ratio", "density"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value):
+            if (isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer))
+                    or not np.isfinite(value)):
                 raise ConfigError(f"{name} must be a finite number, got {value!r}")
         if self.youngs_modulus <= 0:
             raise ConfigError(f"youngs_modulus must be > 0 Pa, got {self.youngs_modulus}")

@@ -26,9 +26,11 @@ The same bounds tell which pairs can matter before the next refresh: a pair d_p 
 vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays
 zero and the sweep skips it (`live`; in a resting pile most pairs of L are such).
 
-The sweep walks only the live pairs closer than r + 2 horizon (near; horizon = NEAR_HORIZON r) until a
-vertex has moved farther than the horizon since x_det, and all of them after: until then the others are
-at least r apart. In a resting pile the vertices move microns per step, and most live pairs are not near.
+The sweep walks only the live pairs closer than r + 2 horizon (near; horizon = NEAR_HORIZON r) while no
+vertex of them has moved farther than the horizon since x_det: until then the others are at least r
+apart. A vertex that moves farther alerts the vertices of its live pairs, which then walk all their live
+pairs in that iteration (`contact_sweep.raise_alerts`); the rest of the pile keeps its near lists. In a
+resting pile the vertices move microns per step, and most live pairs are not near.
 
 When: a full detection whenever positions move outside that margin (checked at every refresh, and every
 `Contact.detection_interval` iterations otherwise); a refresh at the start of every step (at x_n; the
@@ -88,7 +90,9 @@ class ContactStage:
         self.live_end = ti.ndarray(ti.i32, n)
         self.near_incidence = ti.ndarray(ti.i32, 4 * 64)
         self.near_end = ti.ndarray(ti.i32, n)
-        self._crossed = ti.ndarray(ti.i32, 1)
+        self._alert = ti.ndarray(ti.i32, n)            # `contact_sweep.raise_alerts`: stamps, 0 for none yet
+        self._alert.fill(0)
+        self._stamp = 0                                 # the iteration's stamp: one up per contact iteration
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free.astype(np.int32))
         self._color = ti.ndarray(ti.i32, n)             # each free vertex's colour (set with the jacobi lists)
@@ -227,7 +231,7 @@ class ContactStage:
         if not sweeps:
             return
         contact_sweep.vbd_contact_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, flag,
-                                            pair, number, slots, flag, flag, flag, flag, vector, number, 0.0, flag,
+                                            pair, number, slots, flag, flag, flag, flag, vector, number, 0.0, flag, 1,
                                             number, flag, vector, flag, flag, no_jacobi, 1.0, 1.0, 0.0, 1.0, unrolled,
                                             dtype, self._serial, self._cpu)
         contact_sweep.vbd_bounded_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, vector,
@@ -261,10 +265,11 @@ class ContactStage:
             hits = contact_sweep.vbd_bounded_iteration(state, mass, *adjacency, params, self.x_det, self.bound,
                                                        unrolled_colors(n_colors, self._serial), dtype, self._serial)
         else:
+            self._stamp += 1
             hits = contact_sweep.vbd_contact_iteration(state, mass, *adjacency, params, d.kind, d.pair,
                                                        self.distance, d.incidence_offsets, self.live_incidence,
                                                        self.live_end, self.near_incidence, self.near_end, self.x_det,
-                                                       self._moved, NEAR_HORIZON * c.radius, self._crossed,
+                                                       self._moved, NEAR_HORIZON * c.radius, self._alert, self._stamp,
                                                        self.bound, self._color, self._target, self.touched,
                                                        self._jacobi, self._jacobi_count, c.stiffness, c.radius,
                                                        c.friction, c.friction_speed,
@@ -300,7 +305,7 @@ class ContactStage:
         return float(contact_sweep.add_contact_local_systems(state, color_order, d.kind, d.pair, self.distance,
                                                              d.incidence_offsets, self.live_incidence, self.live_end,
                                                              self.near_incidence, self.near_end, self.x_det,
-                                                             self._moved, self._crossed, self._color, params, f, H,
+                                                             self._moved, self._alert, self._color, params, f, H,
                                                              c.stiffness, c.radius, c.friction, c.friction_speed,
                                                              dtype))
 

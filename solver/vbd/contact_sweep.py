@@ -31,15 +31,16 @@ Arrays besides those of `vertex_solve` (P pairs, N vertices, S free vertices in 
 `PairKind`; pair (P,) 4-vectors of vertices; incidence_offsets (N + 1,) and incidence (4P,) the pairs of each
 vertex; live_incidence (4P,) and live_end (N,): the live pairs of each vertex (those that may come within the
 radius before the next refresh), near_incidence (4P,) and near_end (N,) the near ones among them
-(`refresh_bounds`); the sweep walks only the near ones, and all live ones once crossed[0] (1,) int32 says
-that a vertex has moved farther than the horizon (m) since x_det (`measure_moves`): either way in the order
-of the incidence lists, so that the sums are the same; distance (P,) m, each pair's distance at x_det, or a
-lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have not moved far
-enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each vertex's move since
-x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1 at the others; target
-(N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair closer than the radius;
-jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs are
-jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
+(`refresh_bounds`); the sweep walks only the near ones at a vertex i, and all its live ones where alert[i]
+(N,) int32 holds this iteration's stamp: a vertex of one of i's live pairs has moved farther than the horizon
+(m) since x_det (`raise_alerts`), so a pair of i that is not near may have come within the radius. Either way
+in the order of the incidence lists, so that the sums are the same; distance (P,) m, each pair's distance at
+x_det, or a lower bound of it where that changes no bound (`refresh_bounds`; a live pair whose vertices have
+not moved far enough since is skipped too: `may_be_within`); x_det (N,) 3-vectors; moved (N,) m, each
+vertex's move since x_det (`measure_moves`); bound (N,) m; color (N,) int32, each free vertex's colour, -1
+at the others; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at every vertex with a pair
+closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs
+are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
 friction_speed m/s: the `Contact`.
 serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
 While no pair is listed the iteration is `vbd_bounded_iteration` instead: the plain sweep plus the clamp,
@@ -85,17 +86,31 @@ def moves_since(state: ti.template(), x_det: ti.template(), v):
 
 
 @ti.func
-def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), horizon, crossed: ti.template(),
-                  serial: ti.template(), dtype: ti.template()):
+def raise_alerts(i, alert: ti.template(), stamp, pair: ti.template(), incidence_offsets: ti.template(),
+                 live_incidence: ti.template(), live_end: ti.template()):
+    """alert[v] = stamp at the four vertices v of each live pair of vertex i: i has moved farther than the
+    horizon since x_det, so these pairs may come within the radius without being near, and each of their
+    vertices walks all its live pairs in this iteration (module docstring). Every writer writes the same
+    value, so the order of the writes does not matter."""
+    for s in range(incidence_offsets[i], live_end[i]):
+        v = pair[live_incidence[s]]
+        for j in ti.static(range(4)):
+            alert[v[j]] = stamp
+
+
+@ti.func
+def measure_moves(state: ti.template(), x_det: ti.template(), moved: ti.template(), horizon, alert: ti.template(),
+                  stamp, pair: ti.template(), incidence_offsets: ti.template(), live_incidence: ti.template(),
+                  live_end: ti.template(), alerts: ti.template(), serial: ti.template(), dtype: ti.template()):
     """moved[i] = |x_i - x_det,i| in m for every vertex, so that the sweep reads a pair's `moves_since` as four
-    numbers, and crossed[0] = 1 if a vertex has moved farther than the horizon (m), else 0 (both kept up to
-    date by `apply_buffered`)."""
-    crossed[0] = 0
+    numbers, and with alerts, `raise_alerts` around every vertex that has moved farther than the horizon (m)
+    (both kept up to date by `apply_buffered`)."""
     ti.loop_config(serialize=serial)
     for i in range(moved.shape[0]):
         moved[i] = ti.cast((state[X, i] - x_det[i]).norm(), dtype)
-        if moved[i] > horizon:
-            crossed[0] = 1
+        if ti.static(alerts):
+            if moved[i] > horizon:
+                raise_alerts(i, alert, stamp, pair, incidence_offsets, live_incidence, live_end)
 
 
 @ti.func
@@ -164,16 +179,16 @@ def solve_contact_vertex(state: ti.template(), mass: ti.template(), color_order:
                          kind: ti.template(), pair: ti.template(), distance: ti.template(),
                          incidence_offsets: ti.template(), live_incidence: ti.template(), live_end: ti.template(),
                          near_incidence: ti.template(), near_end: ti.template(), x_det: ti.template(),
-                         moved: ti.template(), crossed: ti.template(), bound: ti.template(), color: ti.template(),
-                         target: ti.template(), touched: ti.template(), k, kc, rr, mu_c, friction_speed,
-                         dtype: ti.template()):
+                         moved: ti.template(), alert: ti.template(), stamp, bound: ti.template(),
+                         color: ti.template(), target: ti.template(), touched: ti.template(), k, kc, rr, mu_c,
+                         friction_speed, dtype: ti.template()):
     """Solve the vertex in colour slot k (module docstring): its new position goes to x_i, or to target[i]
-    when i has pairs; returns whether it hit its bound. moved (N,), crossed (1,): `measure_moves`."""
+    when i has pairs; returns whether it hit its bound. moved (N,), alert (N,): `measure_moves`."""
     i = color_order[k]
     f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
     eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)
     f_c, H_c, active = contact_force_hessian_at(state, i, kind, pair, incidence_offsets, live_incidence, live_end,
-                                                near_incidence, near_end, crossed[0] != 0, moved, distance, color,
+                                                near_incidence, near_end, alert[i] == stamp, moved, distance, color,
                                                 kc, rr, mu_c, eps_u, True, dtype)
     f += f_c
     H += H_c
@@ -209,17 +224,21 @@ def bounded_step(state: ti.template(), offsets: ti.template(), others: ti.templa
 @ti.func
 def apply_buffered(state: ti.template(), color_starts: ti.template(), jacobi: ti.template(),
                    jacobi_count: ti.template(), target: ti.template(), x_det: ti.template(), moved: ti.template(),
-                   horizon, crossed: ti.template(), c, serial: ti.template(), dtype: ti.template()):
+                   horizon, alert: ti.template(), stamp, pair: ti.template(), incidence_offsets: ti.template(),
+                   live_incidence: ti.template(), live_end: ti.template(), c, serial: ti.template(),
+                   dtype: ti.template()):
     """x_i = target[i] for the vertices of colour c that have pairs (Jacobi inside a colour), their
-    moved[i] = |x_i - x_det,i| (only vertices with pairs are read there), and crossed[0] = 1 where one has
-    moved farther than the horizon (m). serial: in one loop on one thread."""
+    moved[i] = |x_i - x_det,i| (only vertices with pairs are read there), and `raise_alerts` around each one
+    that has now moved farther than the horizon (m) (where it had already, it raised them at the iteration's
+    start). serial: in one loop on one thread."""
     ti.loop_config(serialize=serial)
     for j in range(color_starts[c], color_starts[c] + jacobi_count[c]):
         i = jacobi[j]
         state[X, i] = target[i]
+        was = moved[i]
         moved[i] = ti.cast((target[i] - x_det[i]).norm(), dtype)
-        if moved[i] > horizon:
-            crossed[0] = 1
+        if moved[i] > horizon and was <= horizon:
+            raise_alerts(i, alert, stamp, pair, incidence_offsets, live_incidence, live_end)
 
 
 @ti.kernel
@@ -230,7 +249,7 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
                           incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
                           live_end: ti.types.ndarray(), near_incidence: ti.types.ndarray(),
                           near_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
-                          horizon: ti.f64, crossed: ti.types.ndarray(),
+                          horizon: ti.f64, alert: ti.types.ndarray(), stamp: ti.i32,
                           bound: ti.types.ndarray(), color: ti.types.ndarray(), target: ti.types.ndarray(),
                           touched: ti.types.ndarray(), jacobi: ti.types.ndarray(), jacobi_count: ti.types.ndarray(),
                           k_c: ti.f64, r: ti.f64, mu: ti.f64, friction_speed: ti.f64, n_colors: ti.template(),
@@ -242,28 +261,29 @@ def vbd_contact_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
     9 us in a settled pile of 64 balls). n_colors: `vertex_solve.unrolled_colors`."""
     hits = 0
     kc, rr, mu_c = ti.cast(k_c, dtype), ti.cast(r, dtype), ti.cast(mu, dtype)
-    measure_moves(state, x_det, moved, horizon, crossed, serial, dtype)
+    measure_moves(state, x_det, moved, horizon, alert, stamp, pair, incidence_offsets, live_incidence, live_end, True,
+                  serial, dtype)
     if ti.static(serial):
         ti.loop_config(serialize=True)
         for c in range(color_starts.shape[0] - 1):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
                                         incidence_offsets, live_incidence, live_end, near_incidence, near_end, x_det,
-                                        moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
+                                        moved, alert, stamp, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     hits += 1
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, True,
-                           dtype)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, alert, stamp, pair,
+                           incidence_offsets, live_incidence, live_end, c, True, dtype)
     else:
         for c in ti.static(range(n_colors)):
             for k in range(color_starts[c], color_starts[c + 1]):
                 if solve_contact_vertex(state, mass, color_order, offsets, others, adj_f, params, kind, pair, distance,
                                         incidence_offsets, live_incidence, live_end, near_incidence, near_end, x_det,
-                                        moved, crossed, bound, color, target, touched, k, kc, rr, mu_c,
+                                        moved, alert, stamp, bound, color, target, touched, k, kc, rr, mu_c,
                                         friction_speed, dtype):
                     ti.atomic_add(hits, 1)
-            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, crossed, c, cpu,
-                           dtype)
+            apply_buffered(state, color_starts, jacobi, jacobi_count, target, x_det, moved, horizon, alert, stamp, pair,
+                           incidence_offsets, live_incidence, live_end, c, cpu, dtype)
     return hits
 
 
@@ -550,16 +570,17 @@ def add_contact_local_systems(state: ti.types.ndarray(), color_order: ti.types.n
                               incidence_offsets: ti.types.ndarray(), live_incidence: ti.types.ndarray(),
                               live_end: ti.types.ndarray(), near_incidence: ti.types.ndarray(),
                               near_end: ti.types.ndarray(), x_det: ti.types.ndarray(), moved: ti.types.ndarray(),
-                              crossed: ti.types.ndarray(), color: ti.types.ndarray(), params: ti.types.ndarray(),
+                              alert: ti.types.ndarray(), color: ti.types.ndarray(), params: ti.types.ndarray(),
                               f_out: ti.types.ndarray(), H_out: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, mu: ti.f64,
                               friction_speed: ti.f64, dtype: ti.template()) -> ti.f64:
     """Add every free vertex's contact force and block to f_out (N,) and H_out (N,) 3x3 (as
     `vertex_solve.local_systems` filled them), the bounds, live lists and distances set at the current x
-    (x_det = x); return max_i |f_i| in N. moved (N,), crossed (1,): scratch for `measure_moves`; every live
-    pair is walked. The blocks are G's, each pair's once: the sweep's Jacobi factor (module docstring) is
+    (x_det = x); return max_i |f_i| in N. moved (N,): scratch for `measure_moves`; alert (N,) goes unread:
+    every live pair is walked. The blocks are G's, each pair's once: the sweep's Jacobi factor (module docstring) is
     not part of G, and color (N,) goes unread."""
     result = ti.cast(0.0, ti.f64)
-    measure_moves(state, x_det, moved, 0.0, crossed, False, dtype)
+    measure_moves(state, x_det, moved, 0.0, alert, 0, pair, incidence_offsets, live_incidence, live_end, False, False,
+                  dtype)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         eps_u = ti.cast(friction_speed * params[TIME_STEP], dtype)

@@ -268,6 +268,9 @@ class Simulation(SimulationState):
             what = "non-finite positions" if not np.isfinite(moved) else f"a vertex moved {moved:.3g} m in one step"
             hint = ("lower chebyshev_rho (or switch it off)" if self.chebyshev_rho is not None
                     else "use a smaller dt, more iterations, or a softer material")
+            if self._contact_stage is not None:
+                hint += (f" (with contact: a smaller radius or stiffness; surfaces that start within the radius, "
+                         f"{self._contact_stage.contact.radius:g} m, are pushed apart at once)")
             raise VBDError(f"the step diverged ({what}, body size {size:.3g} m); {hint}. "
                            "The simulation is back at the start of the step.")
         implicit_euler.end_step(self.state, self._params)
