@@ -10,7 +10,10 @@ def relative_error(x: np.ndarray, x_star: np.ndarray, x_n: np.ndarray) -> float:
     A step that does not move (x* = x_n exactly) has no scale to measure against: the error is then
     0 where x = x* and infinite otherwise, never an absolute distance in metres.
     """
-    x, x_star, x_n = (np.asarray(a, dtype=float) for a in (x, x_star, x_n))
+    try:
+        x, x_star, x_n = (np.asarray(a, dtype=float) for a in (x, x_star, x_n))
+    except (TypeError, ValueError):
+        raise ConfigError("relative_error needs x, x* and x_n as arrays of positions (numbers, m)") from None
     if not x.shape == x_star.shape == x_n.shape:
         raise ConfigError(f"relative_error needs x, x* and x_n of one shape, got {x.shape}, {x_star.shape} and "
                           f"{x_n.shape}; pass positions of the same mesh")

@@ -152,6 +152,16 @@ def test_kinematic_nan_says_what_is_wrong():
         sim.step()
 
 
+def test_a_kinematic_motion_of_the_wrong_signature_is_named():
+    """A motion taking one argument was reported as returning a bad array."""
+    mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(4, 1, 1))
+    end = mesh.vertices[:, 0] > 1 - 1e-9
+    sim = solver.Simulation(mesh, solver.Material(1e4, 0.3), kinematic=end, kinematic_motion=lambda t: t)
+    with pytest.raises(solver.ConfigError, match=r"kinematic_motion\(t, rest\) raised TypeError .*it must take the "
+                                                 r"time t in s and the rest positions \(4, 3\)"):
+        sim.step()
+
+
 def test_a_diverging_step_raises_and_keeps_the_start_of_the_step():
     mesh = solver.box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4))
     sim = solver.Simulation(mesh, solver.Material(1e6, 0.3, 1000.0), fixed=mesh.vertices[:, 0] < 1e-9,

@@ -242,6 +242,10 @@ def test_save_mesh_refuses_what_it_cannot_write_in_one_line(tmp_path, mesh, poin
     (lambda: solver.box_mesh(cells=(100000,) * 3), "more than 10,000,000; use fewer cells"),
     (lambda: solver.TetMesh([[0, 0, 0], [1, 0]], BOX.tets[:1]), "its rows differ in length"),
     (lambda: solver.TetMesh(BOX.vertices + 1j, BOX.tets), "vertices must be real numbers"),
+    (lambda: solver.sliver_box_mesh(jitter="x"), r"sliver jitter must be a number of cells in \[0, 0.5\)"),
+    (lambda: solver.sliver_box_mesh(jitter=1e6), r"sliver jitter must be a number of cells in \[0, 0.5\)"),
+    (lambda: solver.sliver_box_mesh(seed=-1), "sliver seed must be a whole number >= 0, got -1"),
+    (lambda: solver.sliver_box_mesh(cells=(0, 1, 1)), r"box cells must be three integers >= 1, got \[0, 1, 1\]"),
     (lambda: solver.TetMesh(BOX.vertices, BOX.tets, original_index=np.array([7])),
      r"original_index must hold one index per vertex, \(8,\), got shape \(1,\)"),
 ])

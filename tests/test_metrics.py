@@ -23,3 +23,8 @@ def test_a_step_that_does_not_move_has_no_scale():
 def test_mismatched_shapes_are_a_config_error():
     with pytest.raises(solver.ConfigError, match=r"one shape, got \(3, 3\), \(4, 3\) and \(4, 3\)"):
         solver.relative_error(np.zeros((3, 3)), np.zeros((4, 3)), np.zeros((4, 3)))
+
+
+def test_positions_that_are_not_numbers_are_a_config_error():
+    with pytest.raises(solver.ConfigError, match="arrays of positions"):
+        solver.relative_error("a", "b", "c")

@@ -165,6 +165,15 @@ def test_a_time_step_outside_the_physical_range_is_refused_in_one_line(dt, metho
     assert sim.dt == low
 
 
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(tolerance=-1.0), r"tolerance must be a positive number of the initial residual \(a fraction, e.g. 1e-4\)"),
+    (dict(fixed=[[0, 1], [2, 3]]), r"fixed vertex indices must be a flat list, got shape \(2, 2\)"),
+])
+def test_a_nonsense_setting_is_named_in_one_line(kwargs, match):
+    with pytest.raises(solver.ConfigError, match=match):
+        solver.Simulation(MESH, MATERIAL, **kwargs)
+
+
 def test_live_assignment_goes_through_settings():
     sim = _simulation("vbd", dict(iterations=3))
     sim.settings = dataclasses.replace(sim.settings, dt=0.01, iterations=7)

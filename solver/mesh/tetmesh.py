@@ -265,9 +265,9 @@ def _point(value, what: str) -> np.ndarray:
 MAX_BOX_CELLS = 10 ** 7     # `box_mesh`: 60 million tets, a few GB of arrays, already past what a step can take here
 
 
-def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> TetMesh:
-    """A box of `size` metres starting at `origin`, with `cells` hexahedra per axis, 6 tets each."""
-    origin = _point(origin, "box origin")
+def _box_dimensions(size, cells):
+    """(size (3,) float64 m, cells (3,) int) of a box, checked: three positive lengths, three integers >= 1
+    and at most MAX_BOX_CELLS cells in all; else a one-line `MeshError`."""
     try:
         size = np.asarray(size, dtype=np.float64)
     except (TypeError, ValueError):
@@ -277,9 +277,17 @@ def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> 
         raise MeshError(f"box size must be three positive lengths, got {size.tolist()}")
     if cells.shape != (3,) or not np.issubdtype(cells.dtype, np.integer) or (cells < 1).any():
         raise MeshError(f"box cells must be three integers >= 1, got {cells.tolist()}")
-    if int(np.prod(cells.astype(np.float64))) > MAX_BOX_CELLS:
-        raise MeshError(f"box cells {cells.tolist()} make {int(np.prod(cells.astype(np.float64))):,} cells (x 6 tets), "
-                        f"more than {MAX_BOX_CELLS:,}; use fewer cells")
+    total = int(np.prod(cells.astype(np.float64)))
+    if total > MAX_BOX_CELLS:
+        raise MeshError(f"box cells {cells.tolist()} make {total:,} cells (x 6 tets), more than {MAX_BOX_CELLS:,}; "
+                        "use fewer cells")
+    return size, cells
+
+
+def box_mesh(size=(1.0, 0.1, 0.1), cells=(40, 4, 4), origin=(0.0, 0.0, 0.0)) -> TetMesh:
+    """A box of `size` metres starting at `origin`, with `cells` hexahedra per axis, 6 tets each."""
+    origin = _point(origin, "box origin")
+    size, cells = _box_dimensions(size, cells)
     axes = [np.linspace(0.0, size[a], cells[a] + 1) + origin[a] for a in range(3)]
     vertices = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     cell_ijk = np.stack(np.meshgrid(*[np.arange(c) for c in cells], indexing="ij"), axis=-1).reshape(-1, 3)
@@ -324,8 +332,12 @@ def sliver_box_mesh(size=(0.2, 0.2, 0.2), cells=(4, 4, 4), jitter: float = 0.001
     """
     from scipy.spatial import Delaunay
 
-    size = np.asarray(size, dtype=np.float64)
-    cells = np.asarray(cells)
+    size, cells = _box_dimensions(size, cells)
+    if isinstance(jitter, bool) or not isinstance(jitter, numbers.Real) or not 0 <= jitter < 0.5:
+        raise MeshError(f"sliver jitter must be a number of cells in [0, 0.5) (nodes stay inside their cell), "
+                        f"got {jitter!r}")
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
+        raise MeshError(f"sliver seed must be a whole number >= 0, got {seed!r}")
     axes = [np.linspace(0.0, size[a], cells[a] + 1) for a in range(3)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     interior = (points > 1e-9 * size) & (points < size * (1 - 1e-9))

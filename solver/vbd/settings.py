@@ -134,7 +134,7 @@ class Settings:
         put("gravity", _gravity(self.gravity))
         put("iterations", count(self.iterations, "iterations"))
         if self.tolerance is not None:
-            put("tolerance", positive(self.tolerance, "tolerance", "(relative)"))
+            put("tolerance", positive(self.tolerance, "tolerance", "the initial residual (a fraction, e.g. 1e-4)"))
         if self.check_every is not None:
             put("check_every", count(self.check_every, "check_every"))
         put("initial_guess", enum_value(InitialGuess, self.initial_guess, "initial_guess (solver.InitialGuess)"))

@@ -63,6 +63,8 @@ def _index_mask(value, n: int, name: str) -> np.ndarray:
         else:
             if arr.size and not np.issubdtype(arr.dtype, np.integer):
                 raise ConfigError(f"{name} must be a boolean mask or integer vertex indices, got {arr.dtype}")
+            if arr.ndim > 1:
+                raise ConfigError(f"{name} vertex indices must be a flat list, got shape {arr.shape}")
             arr = arr.astype(np.int64).ravel()
             if arr.size and (arr.min() < 0 or arr.max() >= n):
                 raise ConfigError(f"{name} has vertex indices outside 0..{n - 1}")
@@ -294,7 +296,12 @@ class Simulation(SimulationState):
     def _kinematic_targets(self, t: float) -> np.ndarray:
         shape = self._kinematic_rest.shape
         try:
-            target = np.asarray(self.kinematic_motion(t, self._kinematic_rest.copy()), dtype=np.float64)
+            moved = self.kinematic_motion(t, self._kinematic_rest.copy())
+        except TypeError as err:        # its own errors of other kinds are the caller's to read
+            raise ConfigError(f"kinematic_motion(t, rest) raised TypeError ({err}); it must take the time t in s "
+                              f"and the rest positions {shape} and return the targets") from err
+        try:
+            target = np.asarray(moved, dtype=np.float64)
         except (TypeError, ValueError):
             raise ConfigError(f"kinematic_motion must return an array of numbers of shape {shape}") from None
         if target.shape != shape:
