@@ -157,6 +157,9 @@ def prepare_output(out, scene, files, overwrite):
         try:
             for f in earlier_outputs(out, scene, files):
                 f.unlink()
+            meshes = out / "meshes"
+            if meshes.is_dir() and not any(meshes.iterdir()) and all(f.parent != meshes for f in files):
+                meshes.rmdir()      # the earlier render's export folder, emptied: not this render's
         except OSError as e:
             raise DemoError(f"cannot remove the earlier render's {f}: {e.strerror}") from None
 

@@ -1,4 +1,6 @@
 """Error measures against the converged Newton solution x* of the same step."""
+import math
+
 import numpy as np
 
 from .errors import ConfigError
@@ -25,6 +27,10 @@ def relative_error(x: np.ndarray, x_star: np.ndarray, x_n: np.ndarray) -> float:
 
 
 def relative_energy_gap(G_x: float, G_star: float, G_n: float) -> float:
-    """(G(x) - G(x*)) / (G(x_n) - G(x*)): the fraction of the step's energy decrease still missing."""
-    denom = G_n - G_star
-    return float((G_x - G_star) / denom) if denom != 0 else float(G_x - G_star)
+    """(G(x) - G(x*)) / (G(x_n) - G(x*)): the fraction of the step's energy decrease still missing. A step
+    that lowers nothing (G(x_n) = G(x*)) has no scale: the gap is then 0 where G(x) = G(x*) and +-inf
+    otherwise, never an absolute energy in J (as `relative_error`)."""
+    gap, denom = float(G_x - G_star), float(G_n - G_star)
+    if denom == 0:
+        return 0.0 if gap == 0 else math.copysign(math.inf, gap)
+    return gap / denom

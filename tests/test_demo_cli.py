@@ -206,6 +206,13 @@ def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path,
     assert sorted(p.name for p in out.glob("frame_*.png")) == ["frame_0000.png", "frame_12.png"]
     assert sorted(p.name for p in (out / "meshes").iterdir()) == ["frame_0000_panel0.obj", "frame_0002_panel0.obj.bak"]
     assert all(f.read_text() == "mine" for f in mine)
+    # without --export the earlier meshes go, and so does their folder once empty (a user's file keeps it)
+    assert main(argv[:-4] + argv[-2:] + ["--frames", "1", "--overwrite"]) == 0
+    assert sorted(p.name for p in (out / "meshes").iterdir()) == ["frame_0002_panel0.obj.bak"]
+    (out / "meshes" / "frame_0002_panel0.obj.bak").unlink()
+    assert main(argv + ["--frames", "1", "--overwrite"]) == 0
+    assert main(argv[:-4] + argv[-2:] + ["--frames", "1", "--overwrite"]) == 0
+    assert not (out / "meshes").exists()
 
 
 @pytest.mark.backend

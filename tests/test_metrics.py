@@ -28,3 +28,11 @@ def test_mismatched_shapes_are_a_config_error():
 def test_positions_that_are_not_numbers_are_a_config_error():
     with pytest.raises(solver.ConfigError, match="arrays of positions"):
         solver.relative_error("a", "b", "c")
+
+
+def test_an_energy_gap_without_a_decrease_has_no_scale():
+    """It returned the absolute energy difference in J where the step lowered nothing."""
+    assert solver.relative_energy_gap(1.5, 1.0, 3.0) == 0.25
+    assert solver.relative_energy_gap(2.0, 2.0, 2.0) == 0.0
+    assert solver.relative_energy_gap(2.5, 2.0, 2.0) == np.inf
+    assert solver.relative_energy_gap(1.5, 2.0, 2.0) == -np.inf
