@@ -949,7 +949,8 @@ def main(argv=None):
             print(f"{task.id:14s} {task.points:3d} points  {task.title}")
             for r in regions:
                 if r.task is task:
-                    print(f"{'':20s}{r.path.as_posix()}:{r.start}-{r.end} {r.function} ({len(r.lines)} line{'s' if len(r.lines) != 1 else ''})")
+                    lines = f"{len(r.lines)} line{'s' if len(r.lines) != 1 else ''}"
+                    print(f"{'':20s}{r.path.as_posix()}:{r.start}-{r.end} {r.function} ({lines})")
         return 0
     generate(args.out, overwrite=args.overwrite)
     return 0

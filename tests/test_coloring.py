@@ -59,7 +59,8 @@ def test_invalid_colorings_are_detected():
     assert not solver.is_valid_coloring(mesh.tets, colors)
     colors[:] = -1
     assert not solver.is_valid_coloring(mesh.tets, colors)
-    with pytest.raises(solver.ConfigError, match=r"one colour per vertex, at least 16 for these tets, got shape \(1,\)"):
+    with pytest.raises(solver.ConfigError, match=r"one colour per vertex, at least 16 for these tets, "
+                                                 r"got shape \(1,\)"):
         solver.is_valid_coloring(mesh.tets, colors[:1])
 
 
