@@ -1,5 +1,5 @@
-"""Shared test set-up: the Taichi backend of the run (``--arch``), float64, a private colouring cache,
-and the check that keeps the ``backend`` marker honest.
+"""Shared test set-up: the Taichi backend of the run (``--arch``), float64, a private colouring cache
+(removed at the end of the run), and the check that keeps the ``backend`` marker honest.
 
 ``pytest --arch gpu`` (or ``VBD_TEST_ARCH=gpu``) runs every test on CUDA; where there is no CUDA GPU
 they all skip with that reason. Taichi holds one backend per process, hence one option per run.
@@ -16,6 +16,7 @@ so that no worker ends alone on a long file.
 import functools
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -23,7 +24,11 @@ import pytest
 
 ARCHS = ("cpu", "gpu")
 DURATIONS = Path(__file__).with_name("durations.json")     # written by tools/mark_slow.py --write-durations
-os.environ.setdefault("VBD_CACHE_DIR", tempfile.mkdtemp(prefix="vbd-cache-"))
+# The colouring / tetrahedralisation cache of this run: a folder of its own unless the caller chose one
+# (xdist's workers inherit the controller's), removed when the process that made it ends its run.
+OWN_CACHE = None
+if "VBD_CACHE_DIR" not in os.environ:
+    OWN_CACHE = os.environ["VBD_CACHE_DIR"] = tempfile.mkdtemp(prefix="vbd-cache-")
 
 
 def pytest_addoption(parser):
@@ -51,6 +56,11 @@ def pytest_configure(config):
         if config.option.arch not in ARCHS:
             raise pytest.UsageError(f"VBD_TEST_ARCH={config.option.arch!r} is not a backend; "
                                     f"set it to one of {', '.join(ARCHS)} or unset it")
+
+
+def pytest_unconfigure(config):
+    if OWN_CACHE is not None:
+        shutil.rmtree(OWN_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

@@ -42,7 +42,6 @@ def test_a_second_simulation_of_the_same_mesh_reuses_topology_and_kernels():
     np.testing.assert_array_equal(second.positions, first.positions)
 
 
-@pytest.mark.slow
 def test_simulations_built_after_ti_init_again_do_not_reuse_freed_arrays():
     """ti.init frees every array made before it. The device adjacency and the Newton solvers are cached
     per Taichi runtime, so a simulation built afterwards of the same mesh gets fresh ones and steps as

@@ -52,6 +52,28 @@ def test_a_test_launching_kernels_without_the_marker_fails(tmp_path):
         proc.stdout[-3000:]
 
 
+def test_a_run_removes_the_cache_folder_it_made_and_keeps_one_it_was_given(tmp_path):
+    """The colouring cache of a test run is a temporary folder of its own, gone once the run ends (one was left
+    in the temporary folder by every run); a folder named by VBD_CACHE_DIR is the caller's and stays."""
+    (tmp_path / "conftest.py").write_text((ROOT / "tests/conftest.py").read_text())
+    (tmp_path / "test_cache.py").write_text(textwrap.dedent("""
+        import os
+
+        def test_the_cache_folder_exists_during_the_run():
+            assert os.path.isdir(os.environ["VBD_CACHE_DIR"])
+    """))
+    temporary, given = tmp_path / "tmp", tmp_path / "given"
+    for folder in (temporary, given):
+        folder.mkdir()
+    env = {k: v for k, v in os.environ.items() if k != "VBD_CACHE_DIR"}
+    for extra in ({}, {"VBD_CACHE_DIR": str(given)}):
+        proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "test_cache.py"],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                              env={**env, "PYTHONPATH": str(ROOT), "TMPDIR": str(temporary), **extra})
+        assert proc.returncode == 0, proc.stdout[-3000:]
+    assert not any(temporary.glob("vbd-cache-*")) and given.is_dir()
+
+
 @pytest.mark.slow
 def test_backend_tests_pass_on_cuda(arch, cuda_present):
     if arch != "cpu":

@@ -81,7 +81,6 @@ def test_throughput_quick(tmp_path):
     assert (tmp_path / "throughput.png").exists()
 
 
-@pytest.mark.slow
 @pytest.mark.backend
 def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, arch):
     """benchmarks.cuda's scenes on this run's backend (the CPU in the default run: the same code), every
@@ -212,7 +211,6 @@ def test_provenance_names_the_commit_and_says_when_the_code_was_edited(tmp_path)
     assert provenance(["throughput.py"], root=tmp_path).endswith(f" CPU cores, {cholmod} CHOLMOD (cvxopt)")
 
 
-@pytest.mark.slow
 def test_skip_quick(tmp_path):
     run_quick("skip", tmp_path)
     data = rows(tmp_path / "skip.csv")

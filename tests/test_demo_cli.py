@@ -121,7 +121,6 @@ def test_homework_and_figures_are_dispatched_lazily(monkeypatch):
     assert seen == {"homework": ["check", "--x"], "figures": []}
 
 
-@pytest.mark.slow
 def test_help_list_and_first_render_in_a_fresh_process_print_no_banner_and_no_precision_warnings(tmp_path):
     """`python -m demo` in fresh processes: help and list answer, and a clean first run (no kernel cache)
     compiles without Taichi precision warnings; stdout carries only what was asked for."""

@@ -289,8 +289,7 @@ def _body_boxes(scene, states, viewports):
     return boxes
 
 
-@pytest.mark.parametrize("name, frames", [pytest.param("stiffness_sweep", 36, marks=pytest.mark.slow),
-                                          ("resolution_sweep", 12), ("remedy", 8)])
+@pytest.mark.parametrize("name, frames", [("stiffness_sweep", 36), ("resolution_sweep", 12), ("remedy", 8)])
 def test_labels_are_never_covered_by_the_bodies(name, frames):
     """Every label piece drawn lies in its panel's label band, and no body or ghost, projected over the
     scene's frames, reaches into a label (the clamped bar end used to hide "off the ghost")."""

@@ -306,7 +306,6 @@ def test_graded_tests_fail_on_the_starter_with_their_todo(starter, tmp_path):
     assert "VBD homework score" in result.stdout and "not implemented: force_hessian" in result.stdout
 
 
-@pytest.mark.slow
 def test_graded_tests_pass_on_the_solution(tmp_path):
     score = tmp_path / "score.json"
     result = run(["-m", "pytest", "-q", "-p", "no:cacheprovider", "homework/grading"], REPO,
@@ -317,7 +316,6 @@ def test_graded_tests_pass_on_the_solution(tmp_path):
     assert all(t["passed"] for t in report["tests"].values())
 
 
-@pytest.mark.slow
 def test_each_task_scores_without_the_tasks_after_it(tmp_path):
     """Tasks 1-3 done and Chebyshev still a TODO: the sweep's tests pass (no kernel of the sweep compiles
     the Chebyshev TODO) and only the Chebyshev tests fail, with their TODO."""

@@ -151,7 +151,6 @@ def test_the_sums_are_taken_in_a_fixed_order_so_that_runs_repeat_bit_for_bit():
     np.testing.assert_array_equal(runs[0], runs[1])
 
 
-@pytest.mark.slow
 def test_a_resting_pile_comes_to_rest_with_the_correction():
     """Eight cubes in two layers in a fixed box (benchmarks/contact.py's pile), friction 0.3, 20 iterations:
     after 8 s every cube's mean velocity is below 0.5 mm/s. A correction applied at every step, however
