@@ -161,7 +161,7 @@ def prepare_output(out, scene, files, overwrite):
             if meshes.is_dir() and not any(meshes.iterdir()) and all(f.parent != meshes for f in files):
                 meshes.rmdir()      # the earlier render's export folder, emptied: not this render's
         except OSError as e:
-            raise DemoError(f"cannot remove the earlier render's {f}: {e.strerror}") from None
+            raise DemoError(f"cannot remove the earlier render's {e.filename}: {e.strerror}") from None
 
 
 def render(args):

@@ -214,6 +214,25 @@ def test_overwrite_with_fewer_frames_removes_only_its_own_stale_frames(tmp_path,
     assert not (out / "meshes").exists()
 
 
+def test_overwrite_that_cannot_remove_an_earlier_output_names_it_in_one_line(tmp_path, monkeypatch, capsys):
+    """The message names the file or folder that could not go: the emptied meshes/ folder of an earlier
+    render too (where no file was removed before it, building the message raised an UnboundLocalError)."""
+    import errno
+
+    from demo import __main__ as cli
+
+    out = tmp_path / "t"
+    (out / "meshes").mkdir(parents=True)
+
+    def refuse(path):
+        raise PermissionError(errno.EACCES, "Permission denied", str(path))
+
+    monkeypatch.setattr(Path, "rmdir", refuse)
+    with pytest.raises(cli.DemoError, match=r"cannot remove the earlier render's .*meshes: Permission denied$"):
+        cli.prepare_output(out, types.SimpleNamespace(name="twist"), [out / "frame_0000.png"], overwrite=True)
+    assert (out / "meshes").is_dir()
+
+
 @pytest.mark.backend
 def test_overwrite_removes_the_earlier_video_it_does_not_replace(tmp_path, capsys):
     """--overwrite --video none left the previous run's twist.gif beside the new frames, and --video mp4 an
