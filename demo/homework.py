@@ -234,14 +234,28 @@ def cantilever(mesh, youngs_modulus, **kwargs):
 
 def write_references(path: Path, root: Path = REPO_ROOT) -> None:
     """Solve each `REFERENCE_CASES` step to convergence with the project's Newton and save x* (N, 3) per
-    case; save the measurements of task 5 made with `root`'s solution."""
+    case; save the measurements of task 5 made with `root`'s solution. Each is computed once per process
+    (the measurements once per text of `exercises/analysis.py`): a script that writes a starter per
+    student solves them once."""
     import numpy as np
 
+    np.savez(path, **_newton_references(),
+             **_measurements(root.resolve(), (root / "exercises" / "analysis.py").read_text()))
+
+
+@functools.lru_cache(maxsize=1)
+def _newton_references() -> dict:
+    """{case name: x* (N, 3)} for `write_references`."""
     import solver
 
     solver.ensure_taichi("cpu")
-    arrays = {name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()}
-    np.savez(path, **arrays, **measurements(root))
+    return {name: case.simulation().newton_reference() for name, case in REFERENCE_CASES.items()}
+
+
+@functools.lru_cache(maxsize=4)
+def _measurements(root: Path, analysis_source: str) -> dict:
+    """`measurements(root)` for `write_references`; `analysis_source` is only the key."""
+    return measurements(root)
 
 
 def measurements(root: Path = REPO_ROOT) -> dict:

@@ -7,6 +7,8 @@ Taichi is used whenever it is importable. Modules write ``from solver._ti import
 would write ``import taichi as ti``, and ask this module (not ``ti.lang`` internals) whether and
 where the runtime is initialised, since that is where the two differ.
 """
+import functools
+
 try:
     import taichi as ti
 except ImportError:
@@ -90,12 +92,14 @@ def light_allocation_tracebacks() -> bool:
 
 
 def memoise_source_positions() -> bool:
-    """Make kernel compiles faster, with the same result, by memoising two lookups that Taichi's AST
+    """Make kernel compiles faster, with the same result, by memoising three lookups that Taichi's AST
     transform repeats each time a ``ti.func`` is inlined (at every call site, so a kernel that inlines
     the vertex solve once per colour repeats them hundreds of times):
 
     - the source of the function (``inspect.getsourcelines``, which tokenises it, and
       ``getsourcefile``): the same for the same function object;
+    - the text parsed from that source (``textwrap.fill`` of every line, by a new ``TextWrapper`` each
+      time, and ``textwrap.dedent`` of the whole): the same for the same text;
     - the text it writes for every syntax node it visits (``ASTTransformerContext.get_pos_info``:
       "File ..., line ...", the source line and a ``^^^`` hint, wrapped by a new ``TextWrapper``): the
       same for the same source and node position, which together are its key.
@@ -153,8 +157,22 @@ def memoise_source_positions() -> bool:
     get_pos_info.original = position
     getsourcelines.original = source_lines
     kernel_impl.getsourcelines, kernel_impl.getsourcefile = getsourcelines, getsourcefile
+    kernel_impl.textwrap = _MemoisedTextwrap(kernel_impl.textwrap)
     context.get_pos_info = get_pos_info
     return True
+
+
+class _MemoisedTextwrap:
+    """A stand-in for the ``textwrap`` module whose ``fill`` and ``dedent`` remember their results
+    (`memoise_source_positions`); every other name is the module's own."""
+
+    def __init__(self, module):
+        self.module = module
+        self.fill = functools.lru_cache(maxsize=1 << 14)(module.fill)
+        self.dedent = functools.lru_cache(maxsize=1 << 10)(module.dedent)
+
+    def __getattr__(self, name):
+        return getattr(self.module, name)
 
 
 def quick_kernel_calls() -> bool:

@@ -13,8 +13,8 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def run_quick(module, out):
-    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--quick", "--no-progress",
+def run_quick(module, out, *options):
+    proc = subprocess.run([sys.executable, "-m", f"benchmarks.{module}", "--quick", "--no-progress", *options,
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "|" in proc.stdout            # the printed summary table
@@ -85,7 +85,8 @@ def test_throughput_quick(tmp_path):
 def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, arch):
     """benchmarks.cuda's scenes on this run's backend (the CPU in the default run: the same code), every
     measurement written and sane; the pile falls into its box and never crosses."""
-    assert _module("cuda").main(["--quick", "--arch", arch, "--no-progress", "--out", str(tmp_path)]) == 0
+    assert _module("cuda").main(["--quick", "--arch", arch, "--no-progress", "--min-seconds", "0.001",
+                                 "--out", str(tmp_path)]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == f"wrote cuda.csv, summary.md into {tmp_path}"
     data = rows(tmp_path / "cuda.csv")
     assert {r["arch"] for r in data} == {arch}
@@ -212,7 +213,7 @@ def test_provenance_names_the_commit_and_says_when_the_code_was_edited(tmp_path)
 
 
 def test_skip_quick(tmp_path):
-    run_quick("skip", tmp_path)
+    run_quick("skip", tmp_path, "--min-seconds", "0.001")     # the checks, not the timings
     data = rows(tmp_path / "skip.csv")
     by_check = {}
     for r in data:

@@ -618,3 +618,31 @@ def test_splice_takes_only_the_named_functions():
         homework.splice(pristine, "def h():\n    pass\n", ["f"])
     with pytest.raises(ValueError, match="does not parse"):
         homework.splice(pristine, "def f(:\n", ["f"])
+
+
+def test_references_are_solved_once_per_analysis_text(tmp_path):
+    """write_references solves its Newton steps once per process and reuses task 5's measurements for the
+    same root and exercises/analysis.py text; a changed text is measured again, with the new code."""
+    import numpy as np
+
+    root = tmp_path / "root"
+    (root / "exercises").mkdir(parents=True)
+
+    def analysis(scale):
+        (root / "exercises" / "analysis.py").write_text(
+            f"YOUNGS_MODULI = (1e4, 1e5, 1e6)\nRHO_GRID = (0.5, 0.9)\nJACOBI_KEYS = ('start', 'vbd')\n"
+            f"def iterations_needed(E):\n    return int(E // 1e4) * {scale}\n"
+            f"def rho_residuals():\n    return {{0.5: 1.0 * {scale}, 0.9: 2.0}}\n"
+            f"def jacobi_against_coloring():\n    return {{'start': 3.0, 'vbd': 4.0 * {scale}}}\n")
+
+    written = []
+    for n, scale in enumerate((1, 1, 2)):
+        analysis(scale)
+        hits = homework._measurements.cache_info().hits
+        homework.write_references(tmp_path / f"ref{n}.npz", root)
+        written.append(homework._measurements.cache_info().hits - hits)
+        with np.load(tmp_path / f"ref{n}.npz") as data:
+            assert list(data["iterations_needed"]) == [scale, 10 * scale, 100 * scale]
+            assert list(data["rho_residuals"]) == [scale, 2.0] and list(data["jacobi_against_coloring"]) == [3.0, 4 * scale]
+            assert set(homework.REFERENCE_CASES) <= set(data.files)
+    assert written == [0, 1, 0], "the second file from the memo, the changed analysis measured again"

@@ -199,10 +199,14 @@ def game(starter: Path, folder: Path) -> Path:
     return folder
 
 
-@pytest.mark.slow
-def test_a_gamed_starter_scores_0_and_a_class_gets_a_gradebook(starter, tmp_path):
+def test_a_gamed_starter_scores_0_and_a_class_gets_a_gradebook(starter, tmp_path, capsys):
     """The gaming works on the student's own run (100/100 with every task a TODO) and gets nothing from
-    the grader; a folder of submissions is graded as a class, the gradebook written as JSON."""
+    the grader; a folder of submissions is graded as a class, the gradebook written as JSON. Graded on
+    the two tasks the gaming edits (colouring: its tests replaced; force_hessian: the energy it is checked
+    against zeroed); the slow class tests grade every task. The command runs in this process (its graded
+    runs in their own), so that it reuses the references the starter was written with."""
+    from demo.__main__ import main
+
     klass = tmp_path / "class"
     klass.mkdir()
     gamed = game(starter, klass / "gamed")
@@ -211,11 +215,13 @@ def test_a_gamed_starter_scores_0_and_a_class_gets_a_gradebook(starter, tmp_path
     run(["-m", "pytest", "-q", "-p", "no:cacheprovider"], gamed, VBD_GRADE_JSON=str(score))
     assert json.loads(score.read_text())["earned"] == 100      # the student's own run is fooled
     book = tmp_path / "book.json"
-    result = run(["-m", "demo", "homework", "grade", str(klass), "--json", str(book), "--jobs", "2"], REPO)
-    assert result.returncode == 0, result.stderr[-2000:]
-    lines = result.stdout.strip().splitlines()
-    assert lines[-1] == "total: 0/100" and "== gamed" in lines and "== untouched" in lines, result.stdout
-    assert lines.count("total: 0/100") == 2
+    capsys.readouterr()
+    assert main(["homework", "grade", str(klass), "--json", str(book), "--task", "coloring",
+                 "--task", "force_hessian"]) == 0
+    out = capsys.readouterr().out
+    lines = out.strip().splitlines()
+    assert lines[-1] == "total: 0/40" and "== gamed" in lines and "== untouched" in lines, out
+    assert lines.count("total: 0/40") == 2
     gradebook = json.loads(book.read_text())
     assert set(gradebook) == {"gamed", "untouched"}
-    assert all(entry["earned"] == 0 and entry["total"] == 100 for entry in gradebook.values()), gradebook
+    assert all(entry["earned"] == 0 and entry["total"] == 40 for entry in gradebook.values()), gradebook

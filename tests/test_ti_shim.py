@@ -44,6 +44,27 @@ def test_without_taichi_it_falls_back_to_quadrants_or_says_what_to_install():
         assert last.startswith("ImportError: neither taichi nor quadrants is installed; run `pip install")
 
 
+def test_memoised_textwrap_gives_taichi_the_source_text_it_would_make():
+    """The AST transform parses fill(line, tabsize=4, width=9999) of every source line and the dedent of
+    their join: the memoised stand-in returns the module's own results, from its memo the second time."""
+    import textwrap
+    from importlib import import_module
+
+    import solver
+
+    solver.ensure_taichi()
+    wrap = import_module(f"{_ti.NAME}.lang.kernel_impl").textwrap
+    if wrap is textwrap:
+        pytest.skip(f"{_ti.NAME}'s kernel_impl is not memoised")
+    lines = (Path(_ti.__file__).parent / "vbd" / "vertex_solve.py").read_text().splitlines()
+    lines += ["\tx = 1  # a tab", "    y = [1,\t2]", ""]
+    for _ in range(2):
+        assert [wrap.fill(line, tabsize=4, width=9999) for line in lines] == [
+            textwrap.fill(line, tabsize=4, width=9999) for line in lines]
+        assert wrap.dedent("\n".join(lines[-3:])) == textwrap.dedent("\n".join(lines[-3:]))
+    assert wrap.fill.cache_info().hits >= len(set(lines)) and wrap.indent is textwrap.indent
+
+
 @pytest.mark.backend
 def test_memoised_source_positions_are_the_texts_taichi_writes(monkeypatch):
     from importlib import import_module
