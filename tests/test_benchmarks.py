@@ -223,6 +223,10 @@ def test_skip_quick(tmp_path):
     assert by_check["fixed vertices"][0]["ok"] == "True"
     assert by_check["set-up: colouring"][0]["ok"] == "True"
     assert by_check["stopping tolerance"][0]["ok"] == "True"
+    from demo.scenes import DEFAULT_SCENE
+
+    (frames,) = by_check["frames not requested"]          # measured, not "demo API differs"
+    assert frames["ok"] == "True" and frames["scene"] == f"demo '{DEFAULT_SCENE}'", frames
 
 
 # ---------------------------------------------------------------------------------------------
