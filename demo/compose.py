@@ -13,6 +13,7 @@ LABEL_BACKGROUND = (244, 245, 248)
 LINE_SPACING = 1.3      # rows of text are this many font sizes apart
 # the frame size the scenes' cameras are chosen for: a panel narrower than there is fitted by its width
 DEFAULT_SIZE = (1280, 720)
+REMEMBERED_TEXTS = 4096     # pieces of text whose layout a composer keeps before it starts again
 
 
 def layout(n_panels, width, height, top):
@@ -45,6 +46,7 @@ class FrameLayout:
         self.font_size = max(9, height // 40)
         self.font = ImageFont.load_default(size=self.font_size)
         self.title_font = ImageFont.load_default(size=int(self.font_size * 1.2))
+        self._pieces = {}           # (line, width, font) -> `fit`'s pieces: most labels repeat from frame to frame
         self.title_rows, self.title_band = self._title_rows()
         # at most half of what the title leaves: a tiny image keeps room for the bodies, with fewer rows
         room = max(0, (height - self.title_band) // 2)
@@ -83,6 +85,16 @@ class FrameLayout:
         font), continuations indented, so that a label stays inside its panel; a word wider than that is
         broken where it reaches the width, and a line gets no pieces where not one letter fits."""
         font = font or self.font
+        known = self._pieces.get((line, width, font))
+        if known is None:
+            if len(self._pieces) >= REMEMBERED_TEXTS:      # labels with numbers that change every frame
+                self._pieces.clear()
+            known = self._pieces[line, width, font] = self._fit(line, width, font)
+        return list(known)
+
+    @staticmethod
+    def _fit(line, width, font):
+        """`fit`'s pieces, worked out."""
         pieces, current = [], ""
         for word in line.split(" "):
             trial = f"{current} {word}" if current.strip() else f"{current}{word}"
@@ -121,6 +133,8 @@ class FrameComposer(FrameLayout):
         self.framed = [(vp.width, vp.height) for vp in FrameLayout(scene, *DEFAULT_SIZE).viewports]
         self.label_boxes = []       # (x0, y0, x1, y1) pixel box of every label piece of the last frame
         self.text_boxes = []        # the same of every piece of text of the last frame: title, notes, labels, legend
+        self._title = None          # (the title band as drawn, its text boxes): the same in every frame
+        self._extents = {}          # (text, font) -> its box relative to where it is drawn
 
     def compose(self, states):
         nearest = self.scene.color_by is ColorBy.COLOR_SETS
@@ -129,11 +143,7 @@ class FrameComposer(FrameLayout):
             self.renderer.draw(body, self.scene.camera, viewport, self.scene.grid, framed)
         image = Image.fromarray(self.renderer.image())
         draw = ImageDraw.Draw(image)
-        self.text_boxes = []
-        if self.title_band:
-            draw.rectangle([0, 0, self.width, self.title_band - 1], fill=(250, 250, 252))
-        for text, font, rgb, at in self.title_rows:
-            self._text(draw, at, text, font, rgb)
+        self._draw_title(image, draw)
         s = self.font_size
         self.label_boxes = []
         for state, box in zip(states, self.panels):
@@ -153,10 +163,31 @@ class FrameComposer(FrameLayout):
             self._scalar_legend(image, draw)
         return image
 
+    def _draw_title(self, image, draw):
+        """The title band: the title and the notes, drawn once and pasted into every later frame."""
+        if self._title is not None:
+            band, boxes = self._title
+            if band is not None:
+                image.paste(band, (0, 0))
+            self.text_boxes = list(boxes)
+            return
+        self.text_boxes = []
+        if self.title_band:
+            draw.rectangle([0, 0, self.width, self.title_band - 1], fill=(250, 250, 252))
+        for text, font, rgb, at in self.title_rows:
+            self._text(draw, at, text, font, rgb)
+        band = image.crop((0, 0, self.width, self.title_band)) if self.title_band else None
+        self._title = band, list(self.text_boxes)
+
     def _text(self, draw, at, text, font, rgb):
         """Draw `text` with its top left at `at`; returns (and records) its pixel box."""
         draw.text(at, text, font=font, fill=rgb)
-        box = draw.textbbox(at, text, font=font)
+        extent = self._extents.get((text, font))
+        if extent is None:
+            if len(self._extents) >= REMEMBERED_TEXTS:
+                self._extents.clear()
+            extent = self._extents[text, font] = draw.textbbox((0, 0), text, font=font)
+        box = (at[0] + extent[0], at[1] + extent[1], at[0] + extent[2], at[1] + extent[3])
         self.text_boxes.append(box)
         return box
 

@@ -295,7 +295,19 @@ def _section_code_in(name: str, text: str) -> str:
             continue
         wanted.append(current)
         todo += [n.id for n in ast.walk(definitions[current]) if isinstance(n, ast.Name)]
-    return "\n\n".join(_code_text(ast.get_source_segment(text, definitions[n])) for n in sorted(wanted))
+    lines = text.splitlines(keepends=True)
+    return "\n\n".join(_code_text(_segment(lines, definitions[n])) for n in sorted(wanted))
+
+
+def _segment(lines: list, node: ast.stmt) -> str:
+    """`ast.get_source_segment` of a statement from its file's lines (split once: that function splits the
+    whole text at every call)."""
+    first, last = node.lineno - 1, node.end_lineno - 1
+    if first == last:
+        return lines[first].encode()[node.col_offset:node.end_col_offset].decode()
+    head = lines[first].encode()[node.col_offset:].decode()
+    tail = lines[last].encode()[:node.end_col_offset].decode()
+    return "".join([head, *lines[first + 1:last], tail])
 
 
 def section_inputs(name: str, size, full: bool, root: Path = REPO_ROOT) -> str:

@@ -186,9 +186,11 @@ def quick_kernel_calls() -> bool:
     The replacement keeps, per kernel, what it needs to launch again: how each argument is set (from the
     annotations, once), and per choice of compiled instance (the template arguments' values and each
     array's element type, dimensions and gradient, written as small integers cached on the array) the
-    compiled code. A call whose arguments it was not written for (keyword arguments, defaults left out,
-    numpy or torch arrays, arrays with gradients, fields or compound values as templates, matrix or
-    struct arguments or return values, autodiff, a kernel that prints, a tape or forward mode running)
+    compiled code. numpy arrays are set as Taichi sets them (a C-contiguous array of an argument annotated
+    without a vector or matrix element: its address, size and shape; Taichi's launcher copies it to and
+    from a GPU). A call whose arguments it was not written for (keyword arguments, defaults left out,
+    other numpy arrays, torch arrays, arrays with gradients, fields or compound values as templates, matrix
+    or struct arguments or return values, autodiff, a kernel that prints, a tape or forward mode running)
     goes Taichi's own way, as does the first call of each instance, which compiles it; so do all calls
     after ``ti.init`` again until each instance has been met once more. Errors are Taichi's own.
 
@@ -215,9 +217,10 @@ def quick_kernel_calls() -> bool:
     if getattr(Kernel, "quick_calls", None) is not None:
         return True
     taichi_call = Kernel.__call__
-    ARRAY, FLOAT, INT, UINT, TEMPLATE = range(5)
+    ARRAY, SCALAR_ARRAY, FLOAT, INT, UINT, TEMPLATE = range(6)
     template_types = (bool, int, float, str, type(None), data_type)
     signatures = {}                 # (element type, ndim) -> small int, so that keys hash quickly
+    largest_index = np.iinfo(np.int32).max      # Taichi warns about larger arrays: its own call does that
 
     def plan_of(kernel):
         """((kind, (slot,)) per argument), or None where an annotation is of a kind not handled here."""
@@ -228,7 +231,8 @@ def quick_kernel_calls() -> bool:
                 plan.append((TEMPLATE, None))
                 continue
             if isinstance(annotation, ndarray_type):
-                kind = ARRAY
+                scalars = annotation.dtype is None or id(annotation.dtype) in primitive_types.type_ids
+                kind = SCALAR_ARRAY if scalars and not annotation.needs_grad else ARRAY
             elif id(annotation) in real_ids:
                 kind = FLOAT
             elif id(annotation) in integer_ids:
@@ -272,7 +276,11 @@ def quick_kernel_calls() -> bool:
             return taichi_call(self, *args, **kwargs)
         key = []
         for (kind, _), value in zip(plan, args):
-            if kind == ARRAY:
+            if kind == SCALAR_ARRAY and type(value) is np.ndarray:
+                if not value.flags.c_contiguous or value.size > largest_index:
+                    return taichi_call(self, *args, **kwargs)
+                key.append(signatures.setdefault(("numpy", value.dtype, value.ndim), len(signatures)))
+            elif kind in (ARRAY, SCALAR_ARRAY):
                 if not isinstance(value, Ndarray) or value.grad is not None:
                     return taichi_call(self, *args, **kwargs)
                 signature = value.__dict__.get("_launch_signature")
@@ -300,7 +308,9 @@ def quick_kernel_calls() -> bool:
             runtime.materialize()
         context = compiled.make_launch_context()
         for (kind, slot), value in zip(plan, args):
-            if kind == ARRAY:
+            if kind == SCALAR_ARRAY and type(value) is np.ndarray:
+                context.set_arg_external_array_with_shape(slot, value.ctypes.data, value.nbytes, value.shape, 0)
+            elif kind in (ARRAY, SCALAR_ARRAY):
                 context.set_arg_ndarray(slot, value.arr)
             elif kind == FLOAT:
                 context.set_arg_float(slot, float(value))

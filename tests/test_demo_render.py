@@ -150,6 +150,24 @@ def test_every_piece_of_text_lies_inside_the_frame(first_states, name):
     assert not big.title_rows[-1][0].endswith(" ...")        # 800x800 shows the whole title and every note
 
 
+def test_a_frame_drawn_from_what_the_composer_kept_is_the_frame_drawn_afresh():
+    """The composer draws the title band once and pastes it into later frames, and remembers each label's
+    pieces and each text's box: a second frame with other labels (the error line changes from frame to
+    frame) is, pixel for pixel and box for box, what a new composer draws for it."""
+    scene = scenes.get("stiffness_sweep")
+    runner = SceneRunner(scene)
+    first, second = runner.advance(), runner.advance()
+    assert [s.lines for s in first] != [s.lines for s in second]
+    kept = FrameComposer(scene, 640, 360)
+    kept.compose(first)
+    again = kept.compose(second)
+    fresh = FrameComposer(scene, 640, 360)
+    expected = fresh.compose(second)
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(expected))
+    assert kept.text_boxes == fresh.text_boxes and kept.label_boxes == fresh.label_boxes
+    assert kept.title_band > 0 and len(kept.text_boxes) > len(kept.title_rows)
+
+
 def test_fit_breaks_lines_and_words_to_the_width():
     composer = FrameComposer(scenes.get("twist"), 64, 48)
     pieces = composer.fit("a Verylongunbreakableword and more", 30)

@@ -198,6 +198,22 @@ def test_excerpts_only_run_touches_no_figure(tmp_path):
     assert {p.name: p.read_bytes() for p in (notes / "figures").iterdir()} == before
 
 
+def test_a_section_is_hashed_from_the_text_python_gives_for_each_statement():
+    """The figure hashes quote each statement of the sections file as `ast.get_source_segment` would
+    (from lines split once, not once per statement), also where a statement starts or ends mid-line,
+    spans one line, or holds text that is more than one byte a character in UTF-8."""
+    import ast
+
+    text = "".join((REPO / notes_sync.SECTIONS_FILE).read_text(encoding="utf-8").splitlines(keepends=True)[:300])
+    text = text[:text.rindex("\ndef ")]         # whole statements only
+    text += '\nx = 1; y = "\u00e9\u00e9"  # two statements\nz = (1 +\n     2); w = 3\n'
+    lines = text.splitlines(keepends=True)
+    statements = [node for node in ast.walk(ast.parse(text)) if isinstance(node, ast.stmt)]
+    assert len(statements) > 50 and any(isinstance(node, ast.FunctionDef) for node in statements)
+    for node in statements:
+        assert notes_sync._segment(lines, node) == ast.get_source_segment(text, node), node.lineno
+
+
 def test_figures_match_what_the_command_would_draw():
     """manifest.json records a hash of every section's inputs (its code, the solver, the scenes, the
     parameters) and of each PNG; after a change to any of them, `python -m demo figures` must run again."""

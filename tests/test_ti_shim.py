@@ -207,10 +207,46 @@ def test_quick_calls_follow_the_arrays_to_their_instance():
         third(b)
 
 
+@_ti.ti.kernel
+def _sums(a: _ti.ti.types.ndarray(), b: _ti.ti.types.ndarray(dtype=_ti.ti.f64, ndim=2), s: _ti.ti.f64) -> _ti.ti.f64:
+    total = _ti.ti.cast(0, _ti.ti.f64)
+    for i, j in _ti.ti.ndrange(b.shape[0], b.shape[1]):
+        b[i, j] = b[i, j] * s + a[i]
+        total += b[i, j]
+    return total
+
+
+@pytest.mark.backend
+def test_quick_calls_set_numpy_arrays_as_taichi_does(monkeypatch):
+    """A C-contiguous numpy array (of an argument without a vector element) is set the quick way, as Taichi
+    sets it (address, size, shape; on a GPU Taichi's launcher copies it there and back): the same arrays and
+    returns either way, and no call of an instance met before goes Taichi's own way. Arrays of another
+    dtype or dimension select their own instance."""
+    Kernel = _quick_or_skip()
+    rng = np.random.default_rng(5)
+    a0, b0 = rng.standard_normal(6), rng.standard_normal((6, 4))
+    results = {}
+    for way in ("taichi", "quick"):
+        a, b = a0.copy(), b0.copy()
+        call = Kernel.quick_calls if way == "taichi" else Kernel.__call__
+        returned = [call(_sums._primal, a, b, 0.5 + step) for step in range(4)]
+        returned += [call(_sums._primal, a.astype(np.float32), b, 2.0), call(_sums._primal, a[:3].copy(), b[:3], 1.0)]
+        results[way] = returned, a, b
+    assert results["quick"][0] == results["taichi"][0]
+    np.testing.assert_array_equal(results["quick"][2], results["taichi"][2])
+    launched = []
+    monkeypatch.setattr(Kernel, "launch_kernel", lambda self, *a: launched.append(1) or Kernel.launch_kernel(self, *a))
+    b = b0.copy()
+    _sums(a0, b, 0.5)
+    assert launched == [], "a numpy call of an instance met before went Taichi's own way"
+    np.testing.assert_array_equal(b, b0 * 0.5 + a0[:, None])
+
+
 @pytest.mark.backend
 def test_calls_the_quick_way_does_not_handle_go_taichis_way():
-    """numpy arrays, keyword arguments, fields as templates and arguments of the wrong type work, or fail,
-    as they do in Taichi."""
+    """numpy arrays that are not C-contiguous (Taichi copies a Fortran-ordered one and back, and refuses
+    one of neither order), keyword arguments, fields as templates and arguments of the wrong type work, or
+    fail, as they do in Taichi."""
     _quick_or_skip()
 
     @_ti.ti.kernel
@@ -222,6 +258,12 @@ def test_calls_the_quick_way_does_not_handle_go_taichis_way():
     for _ in range(2):
         scaled(out, 2.0, 4)
     np.testing.assert_array_equal(out, [0.0, 2.0, 4.0, 6.0])
+    b = np.zeros((6, 3), order="F")
+    for _ in range(2):
+        _sums(np.ones(6), b, 1.0)
+    np.testing.assert_array_equal(b, np.full((6, 3), 2.0))
+    with pytest.raises(ValueError, match="Non contiguous numpy arrays"):
+        scaled(np.zeros(8)[::2], 2.0, 4)
     a = _ti.ti.ndarray(_ti.ti.f64, 4)
     for _ in range(2):
         scaled(a, s=3.0, n=4)

@@ -33,8 +33,10 @@ def chebyshev_update(state: ti.template(), i, omega):
 
 @ti.kernel
 def chebyshev_step(state: ti.types.ndarray(), color_order: ti.types.ndarray(), omega: ti.f64,
-                   dtype: ti.template()):
-    """The Chebyshev step after one VBD iteration, for every free vertex (slot k of `color_order`);
-    launched only when a simulation accelerates, so code without it never compiles `chebyshev_update`."""
+                   dtype: ti.template(), serial: ti.template()):
+    """The Chebyshev step after one VBD iteration, for every free vertex (slot k of `color_order`), on one
+    thread where serial (small meshes on the CPU, as their sweep); launched only when a simulation
+    accelerates, so code without it never compiles `chebyshev_update`."""
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         chebyshev_update(state, color_order[k], ti.cast(omega, dtype))

@@ -121,9 +121,9 @@ class ContactStage:
             self.live = ti.ndarray(ti.i32, 2 * n_pairs)
             self.live_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
             self.near_incidence = ti.ndarray(ti.i32, 8 * n_pairs)
-        contact_sweep.copy_row(state, row, self.x_full)
-        contact_sweep.copy_row(state, row, self.x_det)
-        contact_sweep.copy_prefix(self.detector.distance, n_pairs, self.distance)   # exact at x_det
+        contact_sweep.copy_row(state, row, self.x_full, self._serial)
+        contact_sweep.copy_row(state, row, self.x_det, self._serial)
+        contact_sweep.copy_prefix(self.detector.distance, n_pairs, self.distance, self._serial)  # exact at x_det
         self._exact.fill(1)
         self._set_bounds(state, row)                # Delta = 0: b_v = g min(q, distance of v's closest pair)
         self._listed = False
@@ -158,7 +158,7 @@ class ContactStage:
         """Whether at state[row] a pair the last full detection missed may have come closer than the radius
         (module docstring)."""
         c = self.contact
-        return 2 * contact_sweep.largest_move(state, row, self.x_full) >= c.query_radius - c.radius
+        return 2 * contact_sweep.largest_move(state, row, self.x_full, self._serial) >= c.query_radius - c.radius
 
     def begin_step(self, state, color_order, kinematic_ids, kinematic_targets, n_kinematic: int) -> None:
         """Refresh the bounds at x_n and clamp the initial guess to them, then move the kinematic vertices to
@@ -169,14 +169,16 @@ class ContactStage:
         (`contact_sweep.guess_within_bounds`; the refresh at the guess then finds the same bounds and
         pairs, module docstring). Called after the guess is set, so the row X_N holds x_n and X the guess
         (the kinematic vertices at their targets)."""
-        contact_sweep.clear(self.touched)
+        contact_sweep.clear(self.touched, self._serial)
         c = self.contact
         if n_kinematic:
-            contact_sweep.hold_kinematic(state, kinematic_ids, n_kinematic)
+            contact_sweep.hold_kinematic(state, kinematic_ids, n_kinematic, self._serial)
         if not contact_sweep.guess_within_bounds(state, color_order, self.x_det, self.x_full, self.bound,
-                                                 c.bound_relaxation, c.query_radius - c.radius, self.dtype):
+                                                 c.bound_relaxation, c.query_radius - c.radius, self.dtype,
+                                                 self._serial):
             self.refresh(state, X_N, lists=False)
-            self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype)
+            self.bound_hits += contact_sweep.clamp_to_bounds(state, color_order, self.x_det, self.bound, self.dtype,
+                                                             self._serial)
         if n_kinematic:
             self.move_kinematic(state, kinematic_ids, kinematic_targets, n_kinematic)
         self._due = True
@@ -194,7 +196,7 @@ class ContactStage:
         while True:
             before = left
             left = contact_sweep.advance_kinematic(state, kinematic_ids, kinematic_targets, n_kinematic, self.x_det,
-                                                   self.bound, self.dtype)
+                                                   self.bound, self.dtype, self._serial)
             moves += 1
             if left == 0:
                 return
@@ -204,7 +206,7 @@ class ContactStage:
         x = state.to_numpy()[X][kinematic_ids.to_numpy()[:n_kinematic]]
         short = np.linalg.norm(kinematic_targets.to_numpy()[:n_kinematic] - x, axis=1)
         vertex = int(kinematic_ids.to_numpy()[int(np.argmax(short))])
-        implicit_euler.return_to_start(state)
+        implicit_euler.return_to_start(state, self._serial)
         raise ConfigError(f"kinematic vertex {vertex} would touch or pass through a body this step: "
                           f"{short.max():.3g} m short of its target after {moves} moves within the contact bounds; "
                           "use a smaller dt or a slower kinematic_motion")
@@ -227,7 +229,7 @@ class ContactStage:
         pair = ti.Vector.ndarray(4, ti.i32, 1)
         for array in (state, vector, number, flag, slots, no_colors, no_jacobi, pair):
             array.from_numpy(np.zeros_like(array.to_numpy()))     # (fill(0) compiles a float64 fill and warns)
-        contact_sweep.largest_move(state, X, vector)
+        contact_sweep.largest_move(state, X, vector, self._serial)
         if not sweeps:
             return
         contact_sweep.vbd_contact_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, flag,
@@ -239,7 +241,7 @@ class ContactStage:
         contact_sweep.refresh_bounds(state, X, vector, flag, pair, 0, slots, flag, 1.0, 0.5, 0.25, number, flag,
                                      number, vector, number, number, flag, flag, flag, flag, flag, 0.0, flag, dtype,
                                      self._serial, False)
-        contact_sweep.clamp_to_bounds(state, flag, vector, number, dtype)
+        contact_sweep.clamp_to_bounds(state, flag, vector, number, dtype, self._serial)
 
     def iterate(self, state, mass, adjacency, params, n_colors: int, dtype, omega=None) -> int:
         """One VBD iteration with contact (`contact_sweep.vbd_contact_iteration`, or `vbd_bounded_iteration`
@@ -259,7 +261,7 @@ class ContactStage:
                 self._jacobi = ti.ndarray(ti.i32, color_order.shape[0])
                 self._jacobi_count = ti.ndarray(ti.i32, n_colors)
             contact_sweep.list_jacobi_vertices(color_order, color_starts, d.incidence_offsets, self._jacobi,
-                                               self._jacobi_count, self._color)
+                                               self._jacobi_count, self._color, self._serial)
             self._listed = True
         if d.n_pairs == 0:
             hits = contact_sweep.vbd_bounded_iteration(state, mass, *adjacency, params, self.x_det, self.bound,
@@ -277,7 +279,7 @@ class ContactStage:
                                                        self._cpu)
         if omega is not None:
             hits += contact_sweep.chebyshev_contact_step(state, color_order, self.touched, self.x_det, self.bound,
-                                                         omega, dtype)
+                                                         omega, dtype, self._serial)
         self._since_check += 1
         self._due = hits > 0
         self.bound_hits += hits
@@ -287,7 +289,7 @@ class ContactStage:
         """Make the detector's pairs those at the current positions: a full detection there, unless the last
         one was made at exactly these positions (it would find the same pairs: detection is deterministic),
         so that asking for the contact count and then the closest gap detects once."""
-        if contact_sweep.largest_move(state, X, self.x_full) != 0:
+        if contact_sweep.largest_move(state, X, self.x_full, self._serial) != 0:
             self.detect(state, X)
 
     def energy(self, state, dtype) -> float:

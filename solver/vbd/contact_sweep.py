@@ -42,7 +42,8 @@ at the others; target (N,) 3-vectors (scratch); touched (N,) int32, set to 1 at 
 closer than the radius; jacobi (S,) and jacobi_count (colours,): the vertices of colour c that have pairs
 are jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]] (`list_jacobi_vertices`). k_c N/m, r m, mu,
 friction_speed m/s: the `Contact`.
-serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`).
+serial: run the colours, and the writes after each, on one CPU thread (`vertex_solve.serial_sweep`); in
+the other kernels, every loop on one thread, for the same small meshes.
 While no pair is listed the iteration is `vbd_bounded_iteration` instead: the plain sweep plus the clamp,
 without the write loops (on the CPU a parallel loop costs tens of us even when empty) and with ten arrays to
 pass instead of 25 (each costs microseconds a launch).
@@ -320,9 +321,10 @@ def vbd_bounded_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), c
 @ti.kernel
 def list_jacobi_vertices(color_order: ti.types.ndarray(), color_starts: ti.types.ndarray(),
                          incidence_offsets: ti.types.ndarray(), jacobi: ti.types.ndarray(),
-                         jacobi_count: ti.types.ndarray(), color: ti.types.ndarray()):
+                         jacobi_count: ti.types.ndarray(), color: ti.types.ndarray(), serial: ti.template()):
     """jacobi[color_starts[c]:color_starts[c] + jacobi_count[c]]: the vertices of colour c that have a pair,
     in slot order, and color[i] = c for every vertex i of colour c (module docstring)."""
+    ti.loop_config(serialize=serial)
     for c in range(jacobi_count.shape[0]):
         n = 0
         for k in range(color_starts[c], color_starts[c + 1]):
@@ -437,11 +439,12 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
 @ti.kernel
 def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndarray(), touched: ti.types.ndarray(),
                            x_det: ti.types.ndarray(), bound: ti.types.ndarray(), omega: ti.f64,
-                           dtype: ti.template()) -> ti.i32:
+                           dtype: ti.template(), serial: ti.template()) -> ti.i32:
     """The Chebyshev step (`chebyshev.py`) for the free vertices that have not touched this step (VBD
     Sec. 3.8: off for the others, whose history only shifts), each clamped to its bound after; returns how
     many were clamped."""
     hits = 0
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         if touched[i]:
@@ -459,10 +462,11 @@ def chebyshev_contact_step(state: ti.types.ndarray(), color_order: ti.types.ndar
 
 @ti.kernel
 def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
-                    bound: ti.types.ndarray(), dtype: ti.template()) -> ti.i32:
+                    bound: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.i32:
     """Clamp every free vertex (slot of `color_order`) to |x_i - x_det,i| <= b_i (the initial guess);
     returns how many were clamped."""
     hits = 0
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         moved = state[X, i] - x_det[i]
@@ -474,8 +478,10 @@ def clamp_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
 
 
 @ti.kernel
-def hold_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(), n_kinematic: ti.i32):
+def hold_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(), n_kinematic: ti.i32,
+                   serial: ti.template()):
     """x_i = x_n,i for the first n_kinematic kinematic vertices (`advance_kinematic` moves them on)."""
+    ti.loop_config(serialize=serial)
     for k in range(n_kinematic):
         state[X, kinematic_ids[k]] = state[X_N, kinematic_ids[k]]
 
@@ -483,11 +489,12 @@ def hold_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(),
 @ti.kernel
 def advance_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(),
                       kinematic_targets: ti.types.ndarray(), n_kinematic: ti.i32, x_det: ti.types.ndarray(),
-                      bound: ti.types.ndarray(), dtype: ti.template()) -> ti.f64:
+                      bound: ti.types.ndarray(), dtype: ti.template(), serial: ti.template()) -> ti.f64:
     """Move each of the first n_kinematic kinematic vertices straight towards its target (K,) 3-vectors,
     as far as |x_i - x_det,i| <= b_i allows (the ball every vertex keeps to between refreshes, so no surface
     passes through another); returns the largest distance in m still left to a target."""
     left = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
     for k in range(n_kinematic):
         i = kinematic_ids[k]
         offset = kinematic_targets[k] - x_det[i]
@@ -503,7 +510,7 @@ def advance_kinematic(state: ti.types.ndarray(), kinematic_ids: ti.types.ndarray
 @ti.kernel
 def guess_within_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), x_det: ti.types.ndarray(),
                         x_full: ti.types.ndarray(), bound: ti.types.ndarray(), g: ti.f64, margin: ti.f64,
-                        dtype: ti.template()) -> ti.i32:
+                        dtype: ti.template(), serial: ti.template()) -> ti.i32:
     """Whether refreshing at x_n (row X_N) would neither detect nor clamp the initial guess (row X), without
     measuring a pair: with M = max_j |x_n,j - x_det,j| each pair has come at most 2 M closer since x_det and
     the cap q - 2 Delta has fallen by at most 2 M, so the bounds a refresh at x_n would set are at least
@@ -511,10 +518,12 @@ def guess_within_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray
     |x_n,j - x_full,j| is below margin (q - r) in m, else 0."""
     M = ti.cast(0.0, ti.f64)
     delta = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
     for i in range(x_det.shape[0]):
         ti.atomic_max(M, ti.cast((state[X_N, i] - x_det[i]).norm(), ti.f64))
         ti.atomic_max(delta, ti.cast((state[X_N, i] - x_full[i]).norm(), ti.f64))
     outside = 0
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         if (state[X, i] - state[X_N, i]).norm() > ti.cast(SAFETY * (bound[i] - 2 * g * M), dtype):
@@ -523,31 +532,36 @@ def guess_within_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray
 
 
 @ti.kernel
-def largest_move(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray()) -> ti.f64:
+def largest_move(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndarray(),
+                 serial: ti.template()) -> ti.f64:
     """max_i |state[row, i] - x_full,i| in m over all vertices (fixed and kinematic ones included)."""
     result = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         ti.atomic_max(result, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
     return result
 
 
 @ti.kernel
-def copy_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
+def copy_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray(), serial: ti.template()):
     """out[i] = state[row, i]."""
+    ti.loop_config(serialize=serial)
     for i in range(out.shape[0]):
         out[i] = state[row, i]
 
 
 @ti.kernel
-def copy_prefix(source: ti.types.ndarray(), n: ti.i32, out: ti.types.ndarray()):
+def copy_prefix(source: ti.types.ndarray(), n: ti.i32, out: ti.types.ndarray(), serial: ti.template()):
     """out[k] = source[k] for k < n."""
+    ti.loop_config(serialize=serial)
     for k in range(n):
         out[k] = source[k]
 
 
 @ti.kernel
-def clear(flags: ti.types.ndarray()):
+def clear(flags: ti.types.ndarray(), serial: ti.template()):
     """flags[i] = 0."""
+    ti.loop_config(serialize=serial)
     for i in range(flags.shape[0]):
         flags[i] = 0
 

@@ -5,6 +5,8 @@
 
 Module-level kernels over the arrays of `layout.py`, shared by every `Simulation`.
 state (STATE_ROWS, N) 3-vectors; free (N,) int32, 1 for the vertices VBD solves; params (PARAM_COUNT,).
+serial: every loop on one thread, for the small meshes whose sweep runs so on the CPU
+(`vertex_solve.serial_sweep`): a parallel loop costs tens of microseconds to start and end there.
 """
 from enum import Enum
 
@@ -34,20 +36,23 @@ _PREVIOUS, _INERTIA, _INERTIAL = (InitialGuess.PREVIOUS.code, InitialGuess.INERT
 @ti.kernel
 def begin_step(state: ti.types.ndarray(), free: ti.types.ndarray(), kinematic_ids: ti.types.ndarray(),
                kinematic_targets: ti.types.ndarray(), n_kinematic: ti.i32, params: ti.types.ndarray(),
-               guess: ti.i32, dtype: ti.template()):
+               guess: ti.i32, dtype: ti.template(), serial: ti.template()):
     """Save x_n, move the kinematic vertices to their targets at t + h, predict y (Eq. 2) and set the
     initial guess (Sec. 3.7) of the free vertices; start the Chebyshev history at the guess.
 
     kinematic_ids (K,) int32 and kinematic_targets (K,) 3-vectors; only the first n_kinematic are used.
     guess: `InitialGuess.code` of the initial guess.
     """
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         state[X_N, i] = state[X, i]
+    ti.loop_config(serialize=serial)
     for k in range(n_kinematic):
         state[X, kinematic_ids[k]] = kinematic_targets[k]
     h = params[TIME_STEP]
     g = ti.Vector([params[GRAVITY_X], params[GRAVITY_X + 1], params[GRAVITY_X + 2]], dt=dtype)
     g2 = g.dot(g)
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         state[Y, i] = state[X_N, i] + h * state[V, i] + h * h * g
         if free[i]:
@@ -68,9 +73,10 @@ def begin_step(state: ti.types.ndarray(), free: ti.types.ndarray(), kinematic_id
 
 
 @ti.kernel
-def largest_displacement(state: ti.types.ndarray()) -> ti.f64:
+def largest_displacement(state: ti.types.ndarray(), serial: ti.template()) -> ti.f64:
     """max_i |x_i - x_n,i| in m over all vertices; +inf when any position is not finite."""
     result = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         d = ti.cast((state[X, i] - state[X_N, i]).norm(), ti.f64)
         if not d <= 1e300:    # NaN or inf
@@ -80,15 +86,17 @@ def largest_displacement(state: ti.types.ndarray()) -> ti.f64:
 
 
 @ti.kernel
-def end_step(state: ti.types.ndarray(), params: ti.types.ndarray()):
+def end_step(state: ti.types.ndarray(), params: ti.types.ndarray(), serial: ti.template()):
     """v_{n+1} = (x - x_n) / h, keeping v_n for the adaptive guess of the next step."""
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         state[V_PREV, i] = state[V, i]
         state[V, i] = (state[X, i] - state[X_N, i]) / params[TIME_STEP]
 
 
 @ti.kernel
-def return_to_start(state: ti.types.ndarray()):
+def return_to_start(state: ti.types.ndarray(), serial: ti.template()):
     """x = x_n: undo the iterations of the current step."""
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         state[X, i] = state[X_N, i]

@@ -48,14 +48,23 @@ ADJ_FLOATS = 6
 
 
 @ti.kernel
-def write_row(state: ti.types.ndarray(), row: ti.i32, values: ti.types.ndarray()):
-    """state[row, i] = values[i]: set one row of the state."""
+def write_row(state: ti.types.ndarray(), row: ti.i32, values: ti.types.ndarray(dtype=ti.f64, ndim=2),
+              dtype: ti.template(), serial: ti.template()):
+    """state[row, i] = values[i] for values (N, 3) float64 (a numpy array: one launch, no staging array),
+    rounded to the state's float type dtype as numpy's astype rounds; serial: on one thread (small
+    meshes on the CPU, `vertex_solve.serial_sweep`)."""
+    ti.loop_config(serialize=serial)
     for i in range(values.shape[0]):
-        state[row, i] = values[i]
+        state[row, i] = ti.cast(ti.Vector([values[i, 0], values[i, 1], values[i, 2]]), dtype)
 
 
 @ti.kernel
-def read_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray()):
-    """out[i] = state[row, i]: one row of the state, so that reading positions copies N, not 7N, vectors."""
+def read_row(state: ti.types.ndarray(), row: ti.i32, out: ti.types.ndarray(dtype=ti.f64, ndim=2),
+             serial: ti.template()):
+    """out[i] = state[row, i] for out (N, 3) float64 (a numpy array): one row of the state, so that reading
+    positions copies N, not 7N, vectors, in one launch; serial as in `write_row`."""
+    ti.loop_config(serialize=serial)
     for i in range(out.shape[0]):
-        out[i] = state[row, i]
+        x = ti.cast(state[row, i], ti.f64)
+        for k in ti.static(range(3)):
+            out[i, k] = x[k]

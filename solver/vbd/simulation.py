@@ -196,13 +196,13 @@ class Simulation(SimulationState):
         if self._n_kinematic:
             self._kin_targets.from_numpy(self._kinematic_targets(self.time + s.dt).astype(self._np_dtype))
         implicit_euler.begin_step(self.state, self._free, self._kin_ids, self._kin_targets, self._n_kinematic,
-                                  self._params, s.initial_guess.code, self.dtype)
+                                  self._params, s.initial_guess.code, self.dtype, self._serial_sweep)
         if s.keep_orientation:
             for _ in range(_GUESS_REPAIR_PASSES):
                 if orientation.undo_inverting_guess(self.state, self._tets, self._free) == 0:
                     break
             else:
-                implicit_euler.return_to_start(self.state)    # x_n: upright wherever the last step was
+                implicit_euler.return_to_start(self.state, self._serial_sweep)     # x_n: upright wherever it was
         if self._contact_stage is not None:                     # bounds at x_n, the guess clamped to them
             self._contact_stage.begin_step(self.state, self._adjacency[0], self._kin_ids, self._kin_targets,
                                            self._n_kinematic)
@@ -242,7 +242,7 @@ class Simulation(SimulationState):
                 vertex_solve.vbd_iteration(self.state, self._mass, color_order, offsets, others, adj_f, color_starts,
                                            self._params, n_colors, self.dtype, self._serial_sweep)
                 if s.chebyshev_rho is not None:
-                    chebyshev_step(self.state, color_order, self._omega, self.dtype)
+                    chebyshev_step(self.state, color_order, self._omega, self.dtype, self._serial_sweep)
             ran += 1
             if s.record_history:
                 self.history.append(IterationRecord(self._iteration, self.energy(), self.max_residual()))
@@ -262,10 +262,10 @@ class Simulation(SimulationState):
                                          self.dtype)
             if self._mesh_translation is not None:      # the bodies' forces sum to zero again: momentum kept
                 self._mesh_translation.apply(self.state, self._mass, self._adjacency, self._params, None, self.dtype)
-        moved = implicit_euler.largest_displacement(self.state)
+        moved = implicit_euler.largest_displacement(self.state, self._serial_sweep)
         size = self._size
         if not moved <= 10 * size:
-            implicit_euler.return_to_start(self.state)
+            implicit_euler.return_to_start(self.state, self._serial_sweep)
             self._in_step = False
             what = "non-finite positions" if not np.isfinite(moved) else f"a vertex moved {moved:.3g} m in one step"
             hint = ("lower chebyshev_rho (or switch it off)" if self.chebyshev_rho is not None
@@ -275,7 +275,7 @@ class Simulation(SimulationState):
                          f"{self._contact_stage.contact.radius:g} m, are pushed apart at once)")
             raise VBDError(f"the step diverged ({what}, body size {size:.3g} m); {hint}. "
                            "The simulation is back at the start of the step.")
-        implicit_euler.end_step(self.state, self._params)
+        implicit_euler.end_step(self.state, self._params, self._serial_sweep)
         self._in_step = False
         self.time += self._settings.dt
         self.frame += 1

@@ -61,14 +61,13 @@ class SimulationState:
         self._mass = ti.ndarray(dtype, n)
         self._params = ti.ndarray(dtype, L.PARAM_COUNT)
         self._f = ti.Vector.ndarray(3, dtype, n)
-        self._row_buffer = ti.Vector.ndarray(3, dtype, n)
         self._H = ti.Matrix.ndarray(3, 3, dtype, n)
         self._free = ti.ndarray(ti.i32, n)
         self._free.from_numpy(self.free_mask.astype(np.int32))
         bodies = body_labels(mesh.tets, n)
-        self._body_translation = BodyTranslation(bodies, self.free_mask)
+        self._body_translation = BodyTranslation(bodies, self.free_mask, self._serial_sweep)
         # every vertex free and several bodies: the whole mesh's translation after the bodies' (`translation.py`)
-        self._mesh_translation = (BodyTranslation(np.zeros(n, np.int32), self.free_mask)
+        self._mesh_translation = (BodyTranslation(np.zeros(n, np.int32), self.free_mask, self._serial_sweep)
                                   if self.free_mask.all() and bodies.max() > 0 else None)
 
         X, T = mesh.vertices, mesh.tets
@@ -163,8 +162,9 @@ class SimulationState:
 
     def _row(self, row: int) -> np.ndarray:
         self._require_live()
-        L.read_row(self.state, row, self._row_buffer)
-        return self._row_buffer.to_numpy().astype(np.float64)
+        out = np.empty((self.mesh.n_vertices, 3))
+        L.read_row(self.state, row, out, self._serial_sweep)
+        return out
 
     @property
     def arrays(self) -> SweepArrays:
@@ -268,8 +268,8 @@ class SimulationState:
     def _set_rows(self, rows: dict) -> None:
         self._require_live()
         for row, value in rows.items():
-            self._row_buffer.from_numpy(np.asarray(value, dtype=self._np_dtype))
-            L.write_row(self.state, row, self._row_buffer)
+            L.write_row(self.state, row, np.ascontiguousarray(value, dtype=np.float64), self.dtype,
+                        self._serial_sweep)
 
     def _checked_state(self, a, name):
         try:

@@ -77,18 +77,21 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
               params: ti.types.ndarray(), body: ti.types.ndarray(), corrected: ti.types.ndarray(),
               members: ti.types.ndarray(), member_starts: ti.types.ndarray(), f_i: ti.types.ndarray(),
               diagonal_i: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(),
-              touching: ti.types.ndarray(), ordered: ti.template(), dtype: ti.template()):
+              touching: ti.types.ndarray(), ordered: ti.template(), dtype: ti.template(), serial: ti.template()):
     """F_b = sum_i f_i and D_b = the diagonal of sum_i m_i/h^2 I + ground block over the vertices of each
     corrected body b; K_b and touching_b cleared. ordered: each vertex's terms go to f_i (N,) and
     diagonal_i (N,) first, then each body sums its own in the order of `members` (its vertices are
     members[member_starts[b]:member_starts[b + 1]]), the same sums on every run; else (on a GPU, where one
-    thread per body would be slow) they are added at once, in whatever order the threads come."""
+    thread per body would be slow) they are added at once, in whatever order the threads come. serial: every
+    loop on one thread (small meshes on the CPU, as their sweep: `vertex_solve.serial_sweep`)."""
+    ti.loop_config(serialize=serial)
     for b in range(F.shape[0]):
         F[b] = ti.Vector.zero(ti.f64, 3)
         D[b] = ti.Vector.zero(ti.f64, 3)
         K[b] = ti.Matrix.zero(ti.f64, 3, 3)
         touching[b] = 0
     inv_h2 = 1 / params[TIME_STEP] ** 2
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         b = body[i]
@@ -105,6 +108,7 @@ def body_sums(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
                 F[b] += ti.cast(f, ti.f64)
                 D[b] += ti.cast(diagonal, ti.f64)
     if ti.static(ordered):
+        ti.loop_config(serialize=serial)
         for b in range(F.shape[0]):
             if corrected[b]:
                 for s in range(member_starts[b], member_starts[b + 1]):
@@ -158,11 +162,12 @@ def pair_sums(state: ti.types.ndarray(), kind: ti.types.ndarray(), pair: ti.type
 @ti.kernel
 def body_steps(corrected: ti.types.ndarray(), F: ti.types.ndarray(), D: ti.types.ndarray(), K: ti.types.ndarray(),
                touching: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(),
-               params: ti.types.ndarray(), friction_speed: ti.f64):
+               params: ti.types.ndarray(), friction_speed: ti.f64, serial: ti.template()):
     """d_b = (diag(D_b) + K_b)^-1 F_b for each corrected body (F_b / D_b componentwise for one touching no
     other body), 0 for the others and for a body touching another whose d_b is shorter than
     friction_speed h in m (module docstring; 0 without contact); alpha_b = 1."""
     least = friction_speed * params[TIME_STEP]
+    ti.loop_config(serialize=serial)
     for b in range(F.shape[0]):
         step = ti.Vector.zero(ti.f64, 3)
         if corrected[b]:
@@ -202,7 +207,7 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
                    d: ti.types.ndarray(), alpha: ti.types.ndarray(), kind: ti.types.ndarray(),
                    pair: ti.types.ndarray(), n_pairs: ti.i32, x_det: ti.types.ndarray(), distance: ti.types.ndarray(),
                    live: ti.types.ndarray(), k_c: ti.f64, r: ti.f64, change_i: ti.types.ndarray(),
-                   change: ti.types.ndarray(), ordered: ti.template()):
+                   change: ti.types.ndarray(), ordered: ti.template(), serial: ti.template()):
     """change[s] = G(x + t) - G(x) in J, in float64, for the translations t_b = 2^-s alpha_b d_b of the
     corrected bodies, s < TRIALS: their inertia and ground terms and their pairs with other bodies (the
     elastic energy and the pairs within a body do not change under a translation of the body). A pair whose
@@ -215,6 +220,7 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
         change[s] = 0.0
     inv_h2 = 1 / ti.cast(params[TIME_STEP], ti.f64) ** 2
     height, k_g = ti.cast(params[GROUND_HEIGHT], ti.f64), ti.cast(params[GROUND_STIFFNESS], ti.f64)
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         delta = ti.Vector.zero(ti.f64, TRIALS)
@@ -266,10 +272,11 @@ def energy_changes(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_or
 @ti.kernel
 def limit_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), body: ti.types.ndarray(),
                     corrected: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(),
-                    x_det: ti.types.ndarray(), bound: ti.types.ndarray()):
+                    x_det: ti.types.ndarray(), bound: ti.types.ndarray(), serial: ti.template()):
     """alpha_b = the largest scale in [0, 1] for which x_i + alpha_b d_b stays within |. - x_det,i| <= b_i
     for every vertex i of body b: the larger root of |m + alpha d|^2 = b_i^2, m = x_i - x_det,i (0 for a
     vertex outside its ball that the step does not bring back); x_det (N,) 3-vectors, bound (N,) in m."""
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         b = body[i]
@@ -289,8 +296,9 @@ def limit_to_bounds(state: ti.types.ndarray(), color_order: ti.types.ndarray(), 
 @ti.kernel
 def translate(state: ti.types.ndarray(), color_order: ti.types.ndarray(), body: ti.types.ndarray(),
               corrected: ti.types.ndarray(), d: ti.types.ndarray(), alpha: ti.types.ndarray(), scale: ti.f64,
-              dtype: ti.template()):
+              dtype: ti.template(), serial: ti.template()):
     """x_i += scale alpha_b d_b for every vertex i of a corrected body b."""
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         i = color_order[k]
         b = body[i]
@@ -302,12 +310,13 @@ class BodyTranslation:
     """The per-body translation correction of one simulation (module docstring).
 
     bodies: (N,) int body of each vertex (`mesh.bodies.body_labels`); free: (N,) bool, the vertices VBD
-    moves. `corrected` (B,) bool marks the bodies without fixed or kinematic vertices, `any` whether
-    there is one; after `apply`, `scale` is the line search's factor (1 without contact, 0 for a dropped
-    step) and `steps()` each body's translation scale alpha_b d_b.
+    moves; serial: every loop on one thread (small meshes on the CPU). `corrected` (B,) bool marks the
+    bodies without fixed or kinematic vertices, `any` whether there is one; after `apply`, `scale` is the
+    line search's factor (1 without contact, 0 for a dropped step) and `steps()` each body's translation
+    scale alpha_b d_b.
     """
 
-    def __init__(self, bodies: np.ndarray, free: np.ndarray):
+    def __init__(self, bodies: np.ndarray, free: np.ndarray, serial: bool = False):
         bodies = np.asarray(bodies, dtype=np.int32)
         n_bodies = int(bodies.max()) + 1
         self.corrected = np.bincount(bodies, weights=(~np.asarray(free, dtype=bool)).astype(float),
@@ -323,7 +332,7 @@ class BodyTranslation:
         self.touching = ti.ndarray(ti.i32, n_bodies)
         self.d = ti.Vector.ndarray(3, ti.f64, n_bodies)
         self.alpha = ti.ndarray(ti.f64, n_bodies)
-        self._changes = ti.ndarray(ti.f64, TRIALS)
+        self._changes = np.zeros(TRIALS)      # written by `energy_changes` (a numpy array: read without a copy)
         self.scale = 1.0
         members = np.argsort(bodies, kind="stable").astype(np.int32)     # each body's vertices, ascending
         self._members = ti.ndarray(ti.i32, len(bodies))
@@ -334,6 +343,7 @@ class BodyTranslation:
         self._diagonal_i = ti.Vector.ndarray(3, ti.f64, len(bodies))
         self._change_i = ti.Vector.ndarray(TRIALS, ti.f64, len(bodies))
         self._ordered = running_on_cpu()    # sums in a fixed order: the same steps on every run
+        self._serial = serial
 
     def apply(self, state, mass, adjacency, params, contact_stage, dtype) -> None:
         """Translate every corrected body by its alpha_b d_b at the current positions; contact_stage: the
@@ -342,24 +352,24 @@ class BodyTranslation:
         body, corrected = self.body, self._corrected
         body_sums(state, mass, color_order, offsets, others, adj_f, params, body, corrected, self._members,
                   self._member_starts, self._f_i, self._diagonal_i, self.F, self.D, self.K, self.touching,
-                  self._ordered, dtype)
+                  self._ordered, dtype, self._serial)
         if contact_stage is not None:
             det, c = contact_stage.detector, contact_stage.contact
             pair_sums(state, det.kind, det.pair, det.n_pairs, contact_stage.x_det, contact_stage.distance,
                       contact_stage.live, body, corrected, self.F, self.K, self.touching, params, c.stiffness,
                       c.radius, c.friction, c.friction_speed, self._ordered, dtype)
         body_steps(corrected, self.F, self.D, self.K, self.touching, self.d, self.alpha, params,
-                   0.0 if contact_stage is None else contact_stage.contact.friction_speed)
+                   0.0 if contact_stage is None else contact_stage.contact.friction_speed, self._serial)
         self.scale = 1.0
         if contact_stage is not None:
             limit_to_bounds(state, color_order, body, corrected, self.d, self.alpha, contact_stage.x_det,
-                            contact_stage.bound)
+                            contact_stage.bound, self._serial)
             energy_changes(state, mass, color_order, params, body, corrected, self.d, self.alpha, det.kind, det.pair,
                            det.n_pairs, contact_stage.x_det, contact_stage.distance, contact_stage.live,
-                           c.stiffness, c.radius, self._change_i, self._changes, self._ordered)
-            descending = np.flatnonzero(self._changes.to_numpy() <= 0)
+                           c.stiffness, c.radius, self._change_i, self._changes, self._ordered, self._serial)
+            descending = np.flatnonzero(self._changes <= 0)
             self.scale = 0.5 ** int(descending[0]) if len(descending) else 0.0
-        translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype)
+        translate(state, color_order, body, corrected, self.d, self.alpha, self.scale, dtype, self._serial)
 
     def steps(self) -> np.ndarray:
         """(B,) 3-vectors: the translation scale alpha_b d_b in m of each body at the last `apply` (0 for
