@@ -11,7 +11,7 @@ and says so, so a new test cannot silently stay out of the CUDA run.
 
 With ``--dist loadfile`` the test files go to the workers longest first, by the durations in
 ``tests/durations.json`` (``tools/mark_slow.py RUN.xml --write-durations tests/durations.json --overwrite``),
-so that no worker ends alone on a long file.
+so that no worker ends alone on a long file; the files of a `SCOPE_GROUPS` group go to one worker, as one.
 """
 import functools
 import json
@@ -24,6 +24,13 @@ import pytest
 
 ARCHS = ("cpu", "gpu")
 DURATIONS = Path(__file__).with_name("durations.json")     # written by tools/mark_slow.py --write-durations
+# Files one worker runs together under --dist loadfile: each compiles the same large kernels (contact's sweep,
+# detection and translation; the demo's contact scenes and the sliver bunny's parallel sweep), which every
+# worker that meets them compiles again (the fast subset: 3.5-5.6 s less wall time in three alternated pairs).
+SCOPE_GROUPS = {"contact and scenes": ["tests/test_contact_sim.py", "tests/test_contact_refresh.py",
+                                       "tests/test_contact_detection.py", "tests/test_contact_newton.py",
+                                       "tests/test_translation_bodies.py", "tests/test_demo_scenes.py",
+                                       "tests/test_demo_render.py"]}
 # The colouring / tetrahedralisation cache of this run: a folder of its own unless the caller chose one
 # (xdist's workers inherit the controller's), removed when the process that made it ends its run.
 OWN_CACHE = None
@@ -130,19 +137,32 @@ def pytest_runtest_makereport(item, call):
 def pytest_xdist_make_scheduler(config, log):
     """With --dist loadfile: hand out the test files longest first (xdist orders them by their number of
     tests, so a file of a few long tests, such as the homework grading, came last and one worker ran it alone
-    while the other had finished)."""
+    while the other had finished), the files of each `SCOPE_GROUPS` group as one where the group's expected
+    time fits in one worker's share of the run (on a machine of many workers, it would make the run longer)."""
     if config.getvalue("dist") != "loadfile" or not DURATIONS.is_file():
         return None
     from xdist.scheduler import LoadFileScheduling
 
-    from tools.mark_slow import longest_first
+    from tools.mark_slow import expected_seconds, fitting_groups, longest_first
 
     seconds = json.loads(DURATIONS.read_text())
+    for name, files in SCOPE_GROUPS.items():      # a group's faster tests: those of its files
+        seconds[name] = sum(seconds.get(f, 0.0) for f in files)
 
     class LongestFirst(LoadFileScheduling):
+        group_of = {}           # file -> its group, for the groups that fit one worker's share
+
+        def _split_scope(self, nodeid):
+            scope = super()._split_scope(nodeid)
+            return self.group_of.get(scope, scope)
+
         def schedule(self):
             collections = list(self.registered_collections.values())
             if self.collection is None and collections and all(c == collections[0] for c in collections):
+                files = {}
+                for nodeid in collections[0]:
+                    files.setdefault(LoadFileScheduling._split_scope(self, nodeid), []).append(nodeid)
+                self.group_of = fitting_groups(SCOPE_GROUPS, expected_seconds(files, seconds), len(self.nodes))
                 scopes = {}
                 for nodeid in collections[0]:
                     scopes.setdefault(self._split_scope(nodeid), []).append(nodeid)

@@ -105,6 +105,24 @@ def test_the_longest_files_go_first_counting_only_the_collected_tests():
     assert mark_slow.longest_first(scopes, seconds) == ["c.py", "a.py", "b.py", "d.py", "e.py"]
 
 
+def test_a_group_goes_to_one_worker_only_where_it_fits_in_a_workers_share():
+    expected = {"a.py": 30.0, "b.py": 20.0, "c.py": 40.0, "d.py": 10.0}
+    groups = {"ab": ["a.py", "b.py"], "cd": ["c.py", "d.py"]}
+    assert mark_slow.fitting_groups(groups, expected, 2) == {"a.py": "ab", "b.py": "ab", "c.py": "cd", "d.py": "cd"}
+    assert mark_slow.fitting_groups(groups, expected, 3) == {}          # 50 s > 100 s / 3
+    assert mark_slow.fitting_groups({"ab": ["a.py", "b.py"], "d": ["d.py"]}, expected, 3) == {"d.py": "d"}
+
+
+def test_every_file_of_a_scheduling_group_exists():
+    """tests/conftest.py keeps the files of a group on one worker (they compile the same kernels): a file
+    renamed or removed would silently leave its group."""
+    import conftest
+
+    files = [f for group in conftest.SCOPE_GROUPS.values() for f in group]
+    assert files and len(files) == len(set(files))
+    assert all((Path(__file__).resolve().parent.parent / f).is_file() for f in files), files
+
+
 def test_the_suite_collects_without_xdist():
     """The scheduler hook in tests/conftest.py is xdist's: without xdist (-p no:xdist) pytest stopped on it as
     an unknown hook before collecting anything."""

@@ -110,11 +110,26 @@ def write_durations(seconds: dict, skipped: set, path: Path) -> int:
     return len(kept)
 
 
+def expected_seconds(scopes: dict, seconds: dict) -> dict:
+    """{scope: expected seconds} of scopes ({file: [nodeid, ...]}): the file's recorded seconds for its faster
+    tests plus those of each of its collected tests that has its own (`write_durations`; a test or file not
+    recorded counts 0)."""
+    return {f: seconds.get(f, 0.0) + sum(seconds.get(n, 0.0) for n in ids) for f, ids in scopes.items()}
+
+
+def fitting_groups(groups: dict, expected: dict, workers: int) -> dict:
+    """{file: group name} for the groups ({name: [file, ...]}) whose files' expected seconds ({file: s})
+    sum to at most one worker's share of the run (all files' seconds over workers): one worker may run
+    such a group alone without making the run longer."""
+    share = sum(expected.values()) / max(1, workers)
+    return {f: name for name, files in groups.items() if sum(expected.get(f, 0.0) for f in files) <= share
+            for f in files}
+
+
 def longest_first(scopes: dict, seconds: dict) -> list:
-    """The keys of scopes ({file: [nodeid, ...]}) ordered by their expected seconds, longest first: the
-    file's recorded seconds for its faster tests plus those of each of its collected tests that has its own
-    (`write_durations`; a test or file not recorded counts 0). Ties keep their order."""
-    expected = {f: seconds.get(f, 0.0) + sum(seconds.get(n, 0.0) for n in ids) for f, ids in scopes.items()}
+    """The keys of scopes ({file: [nodeid, ...]}) ordered by their `expected_seconds`, longest first. Ties
+    keep their order."""
+    expected = expected_seconds(scopes, seconds)
     return sorted(scopes, key=lambda f: -expected[f])
 
 

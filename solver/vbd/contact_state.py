@@ -214,11 +214,12 @@ class ContactStage:
     def compile_kernels(self, mass, adjacency, params, n_colors: int, sweeps: bool) -> None:
         """Compile now the kernels a run may first launch long after its first step, so that the first
         contact does not stall the run while they compile (about 0.6 s with Taichi's offline cache, seconds
-        without): the check for a move since the last detection (`_detect_here`) and, with sweeps (VBD),
-        the contact iteration (once pairs appear), the bounded one (while none is listed), the refresh at x_n
-        and the clamp of the guess. Each is launched on a one-vertex scratch problem with no colour to
-        solve, with the argument types and compile-time constants of this simulation's launches: nothing of
-        the simulation is read or written."""
+        without): the check for a move since the last detection (`_detect_here`), the copy of the pair
+        distances that `contact_count` and `min_separation` read and, with sweeps (VBD), the contact
+        iteration (once pairs appear), the bounded one (while none is listed), the refresh at x_n and the
+        clamp of the guess. Each is launched on a one-vertex scratch problem with no colour to solve, with
+        the argument types and compile-time constants of this simulation's launches: nothing of the
+        simulation is read or written."""
         color_order, offsets, others, adj_f, color_starts = adjacency
         dtype, unrolled = self.dtype, unrolled_colors(n_colors, self._serial)
         state = ti.Vector.ndarray(3, dtype, (STATE_ROWS, 1))
@@ -230,6 +231,7 @@ class ContactStage:
         for array in (state, vector, number, flag, slots, no_colors, no_jacobi, pair):
             array.from_numpy(np.zeros_like(array.to_numpy()))     # (fill(0) compiles a float64 fill and warns)
         contact_sweep.largest_move(state, X, vector, self._serial)
+        contact_sweep.copy_prefix(number, 0, np.empty(1), self._serial)       # `distances`
         if not sweeps:
             return
         contact_sweep.vbd_contact_iteration(state, mass, color_order, offsets, others, adj_f, no_colors, params, flag,
@@ -314,7 +316,9 @@ class ContactStage:
     def distances(self, state) -> np.ndarray:
         """(P,) distances in m of the pairs under query_radius at the current positions."""
         self._detect_here(state)
-        return self.detector.distance.to_numpy()[:self.detector.n_pairs].astype(np.float64)
+        out = np.empty(self.detector.n_pairs)
+        contact_sweep.copy_prefix(self.detector.distance, len(out), out, self._serial)
+        return out
 
     def count(self, state) -> int:
         """Pairs closer than the radius at the current positions."""

@@ -18,15 +18,18 @@ from .layout import GROUND, GROUND_HEIGHT, GROUND_STIFFNESS, LAM, MU, TIME_STEP,
 @ti.kernel
 def incremental_potential(state: ti.types.ndarray(), mass: ti.types.ndarray(), free: ti.types.ndarray(),
                           tets: ti.types.ndarray(), Dm_inv: ti.types.ndarray(), volume: ti.types.ndarray(),
-                          params: ti.types.ndarray()) -> ti.f64:
-    """G(x) in J at the current positions x for the current step's y."""
+                          params: ti.types.ndarray(), serial: ti.template()) -> ti.f64:
+    """G(x) in J at the current positions x for the current step's y; serial: both loops on one thread
+    (small meshes on the CPU, `vertex_solve.serial_sweep`), the sums then in a fixed order."""
     G = ti.cast(0.0, ti.f64)
     inv_h2 = 1 / params[TIME_STEP] ** 2
+    ti.loop_config(serialize=serial)
     for i in range(state.shape[1]):
         if free[i]:
             G += ti.cast(inertia_energy(inv_h2 * mass[i], state[X, i], state[Y, i]), ti.f64)
             if params[GROUND] > 0:
                 G += ti.cast(ground_energy(state[X, i][2], params[GROUND_HEIGHT], params[GROUND_STIFFNESS]), ti.f64)
+    ti.loop_config(serialize=serial)
     for t in range(tets.shape[0]):
         a, b, c, d = tets[t][0], tets[t][1], tets[t][2], tets[t][3]
         F = deformation_gradient(state[X, a], state[X, b], state[X, c], state[X, d], Dm_inv[t])

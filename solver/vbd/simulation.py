@@ -291,7 +291,7 @@ class Simulation(SimulationState):
         color_order, offsets, others, adj_f, _ = self._adjacency
         start, end = self.topology.color_ranges[c]
         vertex_solve.vbd_color(self.state, self._mass, color_order, offsets, others, adj_f, self._params,
-                               start, end, self.dtype)
+                               start, end, self.dtype, self._serial_sweep)
 
     def _kinematic_targets(self, t: float) -> np.ndarray:
         shape = self._kinematic_rest.shape
@@ -320,7 +320,7 @@ class Simulation(SimulationState):
         Damping and friction are not potentials and are not included.
         """
         G = float(energy_kernels.incremental_potential(self.state, self._mass, self._free, self._tets,
-                                                       self._Dm_inv, self._volume, self._params))
+                                                       self._Dm_inv, self._volume, self._params, self._serial_sweep))
         if self._contact_stage is not None:
             G += self._contact_stage.energy(self.state, self.dtype)     # + E_c
         return G
@@ -328,7 +328,7 @@ class Simulation(SimulationState):
     def _local_systems(self) -> float:
         color_order, offsets, others, adj_f, _ = self._adjacency
         largest = float(vertex_solve.local_systems(self.state, self._mass, color_order, offsets, others, adj_f,
-                                                   self._params, self._f, self._H, self.dtype))
+                                                   self._params, self._f, self._H, self.dtype, self._serial_sweep))
         if self._contact_stage is not None:                      # + the contact pairs' terms
             largest = self._contact_stage.add_local_systems(self.state, color_order, self._params, self._f,
                                                             self._H, self.dtype)

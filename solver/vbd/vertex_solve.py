@@ -188,8 +188,10 @@ def vbd_iteration(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_ord
 @ti.kernel
 def vbd_color(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
               offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
-              params: ti.types.ndarray(), start: ti.i32, end: ti.i32, dtype: ti.template()):
-    """Solve the vertices in slots start <= k < end (one colour), in parallel: no two share a tet."""
+              params: ti.types.ndarray(), start: ti.i32, end: ti.i32, dtype: ti.template(), serial: ti.template()):
+    """Solve the vertices in slots start <= k < end (one colour), in parallel: no two share a tet (on one
+    thread where serial, as `vbd_iteration`)."""
+    ti.loop_config(serialize=serial)
     for k in range(start, end):
         solve_vertex(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
 
@@ -198,13 +200,15 @@ def vbd_color(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: 
 def local_systems(state: ti.types.ndarray(), mass: ti.types.ndarray(), color_order: ti.types.ndarray(),
                   offsets: ti.types.ndarray(), others: ti.types.ndarray(), adj_f: ti.types.ndarray(),
                   params: ti.types.ndarray(), f_out: ti.types.ndarray(), H_out: ti.types.ndarray(),
-                  dtype: ti.template()) -> ti.f64:
+                  dtype: ti.template(), serial: ti.template()) -> ti.f64:
     """Fill f_out (N,) 3-vectors and H_out (N,) 3x3 with every free vertex's f_i and H_i (zero at the
-    others) at the current x; return max_i |f_i| in N."""
+    others) at the current x; return max_i |f_i| in N. serial: on one thread, as `vbd_iteration`."""
+    ti.loop_config(serialize=serial)
     for i in range(f_out.shape[0]):
         f_out[i] = ti.Vector.zero(dtype, 3)
         H_out[i] = ti.Matrix.zero(dtype, 3, 3)
     result = ti.cast(0.0, ti.f64)
+    ti.loop_config(serialize=serial)
     for k in range(color_order.shape[0]):
         f, H = force_hessian(state, mass, color_order, offsets, others, adj_f, params, k, dtype)
         f_out[color_order[k]] = f
