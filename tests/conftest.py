@@ -25,12 +25,13 @@ import pytest
 ARCHS = ("cpu", "gpu")
 DURATIONS = Path(__file__).with_name("durations.json")     # written by tools/mark_slow.py --write-durations
 # Files one worker runs together under --dist loadfile: each compiles the same large kernels (contact's sweep,
-# detection and translation; the demo's contact scenes and the sliver bunny's parallel sweep), which every
-# worker that meets them compiles again (the fast subset: 3.5-5.6 s less wall time in three alternated pairs).
+# detection and translation; the demo's contact scenes, the CUDA benchmark's pile and the sliver bunny's
+# parallel sweep), which every worker that meets them compiles again (the fast subset: 3.5-5.6 s less wall
+# time in three alternated pairs).
 SCOPE_GROUPS = {"contact and scenes": ["tests/test_contact_sim.py", "tests/test_contact_refresh.py",
                                        "tests/test_contact_detection.py", "tests/test_contact_newton.py",
                                        "tests/test_translation_bodies.py", "tests/test_demo_scenes.py",
-                                       "tests/test_demo_render.py"]}
+                                       "tests/test_demo_render.py", "tests/test_benchmark_cuda.py"]}
 # The colouring / tetrahedralisation cache of this run: a folder of its own unless the caller chose one
 # (xdist's workers inherit the controller's), removed when the process that made it ends its run.
 OWN_CACHE = None

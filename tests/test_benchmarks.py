@@ -1,6 +1,5 @@
 """The benchmarks' --quick modes run and write sane CSVs; the baselines agree with the solver;
 a few stress-grid cells that run in seconds stay as regular tests. No timings are asserted."""
-import csv
 import math
 import os
 import re
@@ -10,6 +9,8 @@ import sys
 import numpy as np
 import pytest
 
+from tests.benchmark_checks import benchmark_module, exits_with_one_line, rows
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -18,14 +19,11 @@ def run_quick(module, out, *options):
                            "--out", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "|" in proc.stdout            # the printed summary table
-    files = _module(module).OUTPUTS
+    files = benchmark_module(module).OUTPUTS
     assert proc.stdout.strip().splitlines()[-1] == f"wrote {', '.join(files)} into {out}"   # what it wrote, last
     return proc.stdout
 
 
-def rows(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
 
 
 @pytest.mark.slow
@@ -82,39 +80,6 @@ def test_throughput_quick(tmp_path):
 
 
 @pytest.mark.backend
-def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, arch):
-    """benchmarks.cuda's scenes on this run's backend (the CPU in the default run: the same code), every
-    measurement written and sane; the pile falls into its box and never crosses."""
-    assert _module("cuda").main(["--quick", "--arch", arch, "--no-progress", "--min-seconds", "0.001",
-                                 "--out", str(tmp_path)]) == 0
-    assert capsys.readouterr().out.strip().splitlines()[-1] == f"wrote cuda.csv, summary.md into {tmp_path}"
-    data = rows(tmp_path / "cuda.csv")
-    assert {r["arch"] for r in data} == {arch}
-    sweeps = [r for r in data if r["measurement"] == "sweep"]
-    assert [(r["precision"], int(r["tets"])) for r in sweeps] == [("float64", 144), ("float64", 1152),
-                                                                  ("float32", 144), ("float32", 1152)]
-    assert all(float(r["ns_per_tet_iter"]) > 0 and float(r["first_iteration_s"]) > 0 for r in sweeps)
-    (apart,) = [r for r in data if r["measurement"].startswith("apart")]
-    assert int(apart["contacts"]) == 0 and float(apart["contact_per_none"]) > 0
-    (touching,) = [r for r in data if r["measurement"].startswith("touching")]
-    assert int(touching["contacts"]) > 0 and float(touching["detect_per_sweep"]) > 0
-    (pile,) = [r for r in data if r["measurement"] == "falling pile"]
-    assert int(pile["bodies"]) == 8 and int(pile["contacts"]) > 0, "the bottom layer rests on the box"
-    assert 0 < float(pile["min_separation_mm"]) < 5, "closer than the 5 mm radius, never touching"
-    assert float(pile["step_ms"]) > 0 and float(pile["detections_per_step"]) >= 0
-    summary = (tmp_path / "summary.md").read_text()
-    assert "| falling pile |" in summary and "so far" not in summary
-
-
-def test_cuda_without_a_gpu_says_so_in_one_line(capsys, cuda_present, tmp_path):
-    if cuda_present:
-        pytest.skip("this machine has a CUDA GPU")
-    _exits_with_one_line(capsys, lambda: _module("cuda").main(["--quick", "--out", str(tmp_path / "out")]),
-                         "no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
-    assert not (tmp_path / "out").exists(), "nothing is made before the refusal"
-
-
-@pytest.mark.backend
 def test_stability_quick(tmp_path, capsys, arch):
     """In this process, with the threads Taichi already runs with (another count would mean a new ti.init,
     which frees every array made before it)."""
@@ -125,7 +90,7 @@ def test_stability_quick(tmp_path, capsys, arch):
         pytest.skip("the stability benchmark runs on the CPU only: a CUDA run would be initialised again")
     solver.ensure_taichi("cpu")
     threads = running_config().cpu_max_num_threads
-    stability = _module("stability")
+    stability = benchmark_module("stability")
     stability.main(["--quick", "--no-progress", "--threads", str(threads), "--out", str(tmp_path)])
     out = capsys.readouterr().out
     assert "|" in out and out.strip().splitlines()[-1] == f"wrote {', '.join(stability.OUTPUTS)} into {tmp_path}"
@@ -328,20 +293,6 @@ def test_stress_cell_recovers_rest_shape(stress_runner, state):
 SCRIPTS = ("pareto", "throughput", "stability", "skip", "render_speed", "contact", "newton_contact")
 
 
-def _module(name):
-    import importlib
-
-    return importlib.import_module(f"benchmarks.{name}")
-
-
-def _exits_with_one_line(capsys, run, match):
-    with pytest.raises(SystemExit) as e:
-        run()
-    assert e.value.code == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and err.startswith("error: ") and match in err, err
-
-
 def test_quick_runs_write_into_a_new_scratch_folder_full_runs_into_the_results(tmp_path):
     import tempfile
 
@@ -359,10 +310,10 @@ def test_quick_runs_write_into_a_new_scratch_folder_full_runs_into_the_results(t
 
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_no_benchmark_replaces_results_without_overwrite(tmp_path, capsys, name):
-    module = _module(name)
+    module = benchmark_module(name)
     first = tmp_path / module.OUTPUTS[0]
     first.write_text("committed")
-    _exits_with_one_line(capsys, lambda: module.main(["--quick", "--out", str(tmp_path)]),
+    exits_with_one_line(capsys, lambda: module.main(["--quick", "--out", str(tmp_path)]),
                          "already exist; pass --overwrite")
     assert first.read_text() == "committed"
 
@@ -373,7 +324,7 @@ def test_no_benchmark_replaces_results_without_overwrite(tmp_path, capsys, name)
 ])
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_unusable_output_folder_gives_one_line_errors(capsys, name, argv, match):
-    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+    exits_with_one_line(capsys, lambda: benchmark_module(name).main(["--quick"] + argv), match)
 
 
 # Every benchmark module (those with a main()), and a bad value for every option that takes one.
@@ -446,20 +397,20 @@ BAD_VALUES = [
 def test_bad_benchmark_arguments_give_one_line_errors(capsys, name, argv, match):
     """Nonsense is an argparse error (exit 2, one line) before anything runs, not a traceback from the
     solver or a benchmark that silently runs something else."""
-    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+    exits_with_one_line(capsys, lambda: benchmark_module(name).main(["--quick"] + argv), match)
 
 
 @pytest.mark.parametrize("name", BENCHMARKS)
 def test_every_option_that_takes_a_value_has_a_bad_value_case(capsys, name):
     with pytest.raises(SystemExit):
-        _module(name).main(["--help"])
+        benchmark_module(name).main(["--help"])
     options = set(re.findall(r"^  (--[\w-]+) \S", capsys.readouterr().out, re.M)) - {"--out"}
     assert options and options == {argv[0] for module, argv, _ in BAD_VALUES if module == name}
 
 
 @pytest.mark.backend
 def test_render_speed_quick(tmp_path, capsys):
-    _module("render_speed").main(["--quick", "--out", str(tmp_path)])
+    benchmark_module("render_speed").main(["--quick", "--out", str(tmp_path)])
     data = rows(tmp_path / "render_speed.csv")
     assert len(data) == 3 and all(float(r["render_ms"]) > 0 for r in data)
     assert (tmp_path / "render_speed_frame.png").stat().st_size > 0
@@ -472,8 +423,8 @@ def test_render_speed_quick(tmp_path, capsys):
 def test_render_speed_quick_keeps_the_size_and_frames_given(tmp_path, capsys):
     from PIL import Image
 
-    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--size", "64x48",
-                                  "--frames", "2"])
+    benchmark_module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--size", "64x48",
+                                           "--frames", "2"])
     assert len(rows(tmp_path / "render_speed.csv")) == 2
     assert Image.open(tmp_path / "render_speed_frame.png").size == (64, 48)
     assert capsys.readouterr().out.startswith("64x48, ")
@@ -486,13 +437,13 @@ def test_render_speed_names_the_backend_that_ran_not_the_one_asked_for(tmp_path,
     summary said arch=gpu."""
     ran = "cpu" if solver_module.backend.running_on_cpu() else "gpu"
     other = {"cpu": "gpu", "gpu": "cpu"}[ran]
-    _module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--arch", other])
+    benchmark_module("render_speed").main(["--quick", "--no-progress", "--out", str(tmp_path), "--arch", other])
     assert f" arch={ran}: " in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
 def test_help_names_the_command(capsys, name):
-    module = _module(name)
+    module = benchmark_module(name)
     with pytest.raises(SystemExit) as stop:
         module.main(["--help"])
     assert stop.value.code == 0
@@ -515,7 +466,7 @@ def help_entries(text):
 @pytest.mark.parametrize("name", BENCHMARKS)
 def test_help_says_what_every_option_does_and_its_default(capsys, name):
     with pytest.raises(SystemExit):
-        _module(name).main(["--help"])
+        benchmark_module(name).main(["--help"])
     for option, (takes, help) in help_entries(capsys.readouterr().out).items():
         assert len(help.split()) >= 3, f"{option} has no help: {help!r}"
         assert not takes or "default" in help, f"{option} does not say its default: {help!r}"
@@ -525,7 +476,7 @@ def test_help_says_what_every_option_does_and_its_default(capsys, name):
 @pytest.mark.parametrize("name", BENCHMARKS)
 def test_quick_help_says_what_it_sets(capsys, name):
     with pytest.raises(SystemExit):
-        _module(name).main(["--help"])
+        benchmark_module(name).main(["--help"])
     entries = help_entries(capsys.readouterr().out)
     quick = entries.pop("--quick")[1]
     assert quick.startswith("a small, fast version (what the tests run): "), quick
@@ -554,7 +505,7 @@ def test_quick_sets_only_the_options_not_given(tmp_path):
 ])
 def test_an_option_quick_cannot_honour_is_refused_with_it(capsys, name, argv, match):
     """--quick would silently drop these (it runs no 'moving' step, not the whole grid, no mesh that small)."""
-    _exits_with_one_line(capsys, lambda: _module(name).main(["--quick"] + argv), match)
+    exits_with_one_line(capsys, lambda: benchmark_module(name).main(["--quick"] + argv), match)
 
 
 @pytest.mark.backend
@@ -562,7 +513,7 @@ def test_multilevel_quick_keeps_the_options_given(tmp_path):
     """--quick replaced sizes, moduli, states, cycles, sweeps and repeats even when given."""
     argv = ["--quick", "--no-progress", "--out", str(tmp_path), "--sizes", "1", "--moduli", "1e4", "--states", "rest",
             "--cycles", "2", "--max-sweeps", "3"]
-    assert _module("multilevel").main(argv) == 0
+    assert benchmark_module("multilevel").main(argv) == 0
     curves = rows(tmp_path / "multilevel.csv")
     assert {(r["tets"], r["E"], r["state"]) for r in curves} == {("60", "10000", "rest")}
     assert max(int(r["sweeps"]) for r in curves if r["method"] == "VBD") == 3
@@ -604,7 +555,7 @@ def test_throughput_fits_no_exponent_above_10k_tets_without_two_such_meshes():
 
 @pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps", "cuda"))
 def test_the_readme_says_what_each_benchmark_writes(name):
-    module = _module(name)
+    module = benchmark_module(name)
     files = getattr(module, "OUTPUTS", None) or module.FILES
     with open(os.path.join(ROOT, "benchmarks", "README.md")) as fh:
         row = next(line for line in fh if line.startswith(f"| `.venv/bin/python -m benchmarks.{name}` |"))
@@ -620,7 +571,7 @@ def test_newton_speed_quick_measures_only_the_installed_linear_solvers(tmp_path,
     into the same folder replaces nothing without --overwrite. No timing is asserted."""
     monkeypatch.setitem(sys.modules, "cvxopt", None)         # not importable, installed or not
     monkeypatch.setitem(sys.modules, "cholespy", None)
-    newton_speed = _module("newton_speed")
+    newton_speed = benchmark_module("newton_speed")
     assert newton_speed.main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
     data = rows(tmp_path / "newton_speed.csv")
     assert {r["section"] for r in data} == {"converged step", "one iteration", "time_to_error"}
@@ -634,14 +585,14 @@ def test_newton_speed_quick_measures_only_the_installed_linear_solvers(tmp_path,
                "pip install -r requirements-cholmod.txt.")
     assert skipped in capsys.readouterr().out and skipped in (tmp_path / "summary.md").read_text()
     written = (tmp_path / "newton_speed.csv").read_text()
-    _exits_with_one_line(capsys, lambda: newton_speed.main(["--quick", "--out", str(tmp_path)]),
+    exits_with_one_line(capsys, lambda: newton_speed.main(["--quick", "--out", str(tmp_path)]),
                          "already exist; pass --overwrite")
     assert (tmp_path / "newton_speed.csv").read_text() == written
 
 
 @pytest.mark.backend
 def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
-    assert _module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
+    assert benchmark_module("interactive_fps").main(["--quick", "--no-progress", "--out", str(tmp_path)]) == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == \
         f"wrote interactive_fps.csv, summary.md into {tmp_path}"
     from solver.newton.direct import DirectSolver, LinearSolver
@@ -650,21 +601,3 @@ def test_interactive_fps_quick_says_what_it_wrote(tmp_path, capsys):
     assert (off["ghosts"], off["ghost_solver"]) == ("off", "none")
     assert (on["ghosts"], on["ghost_solver"]) == \
         ("on", "cholmod" if DirectSolver.installed(LinearSolver.CHOLMOD) else "qdldl")
-
-
-@pytest.mark.backend
-def test_cuda_writes_its_results_after_every_measurement(tmp_path, capsys, arch, monkeypatch):
-    """A run stopped part way (a GPU lent for minutes, taken back) leaves the rows measured so far, and its
-    summary says how far it got."""
-    cuda = _module("cuda")
-
-    def stop(*args):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(cuda, "measure_apart", stop)
-    _exits_with_one_line(capsys, lambda: cuda.main(["--quick", "--arch", arch, "--no-progress", "--parts", "sweep",
-                                                    "contact", "--out", str(tmp_path)]),
-                         "interrupted: ")
-    assert [(r["precision"], r["tets"]) for r in rows(tmp_path / "cuda.csv")] == [
-        ("float64", "144"), ("float64", "1152"), ("float32", "144"), ("float32", "1152")]
-    assert "(so far: 4 of 5 measurements)" in (tmp_path / "summary.md").read_text().splitlines()[0]
