@@ -34,8 +34,11 @@ def test_cuda_quick_runs_the_gpu_columns_on_the_runs_backend(tmp_path, capsys, a
 def test_cuda_without_a_gpu_says_so_in_one_line(capsys, cuda_present, tmp_path):
     if cuda_present:
         pytest.skip("this machine has a CUDA GPU")
-    refused = lambda: benchmark_module("cuda").main(["--quick", "--out", str(tmp_path / "out")])  # noqa: E731
-    exits_with_one_line(capsys, refused, "no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
+    def without_arch():
+        benchmark_module("cuda").main(["--quick", "--out", str(tmp_path / "out")])
+
+    exits_with_one_line(capsys, without_arch,
+                        "no CUDA GPU on this machine; run it where there is one, or pass --arch cpu")
     assert not (tmp_path / "out").exists(), "nothing is made before the refusal"
 
 
