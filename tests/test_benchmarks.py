@@ -390,6 +390,10 @@ BAD_VALUES = [
     ("cuda", ["--cells", "x"], "--cells: expected a positive whole number"),
     ("cuda", ["--min-seconds", "inf"], "--min-seconds: expected a positive number"),
     ("cuda", ["--parts", "sweep", "all"], "--parts: invalid choice: 'all'"),
+    ("before_after", ["--against", "no-such-commit"], "'no-such-commit' is neither a folder nor a commit of this"),
+    ("before_after", ["--rounds", "0"], "--rounds: expected a positive whole number"),
+    ("before_after", ["--parts", "vbd", "pareto"], "--parts: invalid choice: 'pareto'"),
+    ("before_after", ["--frames", "-1"], "--frames: expected a positive whole number"),
 ]
 
 
@@ -441,7 +445,8 @@ def test_render_speed_names_the_backend_that_ran_not_the_one_asked_for(tmp_path,
     assert f" arch={ran}: " in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps"))
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps",
+                                           "before_after"))
 def test_help_names_the_command(capsys, name):
     module = benchmark_module(name)
     with pytest.raises(SystemExit) as stop:
@@ -553,7 +558,8 @@ def test_throughput_fits_no_exponent_above_10k_tets_without_two_such_meshes():
     assert [f["exponent_10k_up"] for f in scaling_fits(measured([144, 12_000, 48_000]), [1])] == pytest.approx([1, 1])
 
 
-@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps", "cuda"))
+@pytest.mark.parametrize("name", SCRIPTS + ("newton_speed", "multilevel", "inversion", "interactive_fps", "cuda",
+                                           "before_after"))
 def test_the_readme_says_what_each_benchmark_writes(name):
     module = benchmark_module(name)
     files = getattr(module, "OUTPUTS", None) or module.FILES

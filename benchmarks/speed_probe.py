@@ -1,0 +1,89 @@
+"""The solver timings of `benchmarks.before_after`, run inside the checkout being measured.
+
+It imports nothing of `benchmarks` and only the public `solver` names that were there before the
+regroup (`box_mesh`, `Material`, `Method`, `Simulation` with `set_positions`, `begin_step`,
+`run_iterations`, `step`), so the same file times an older checkout: started as
+
+    python benchmarks/speed_probe.py '{"classroom": [40, 4, 4], "large": [40, 20, 20], "global": true}'
+
+with that checkout first on PYTHONPATH, it prints ``RESULT {json}`` as its last line: for each
+measurement its value and a checksum of the positions it reached (sum of |x|), so that a driver can
+tell that both checkouts did the same work.
+"""
+import json
+import sys
+import time
+
+import numpy as np
+
+import solver
+
+E_PA = 1e6              # the stiff bar of the lecture's failure case
+STRETCH = 1.5           # the bar starts stretched to 1.5x its length along x, then is released
+REPEATS = 7             # timed calls per measurement; the median is reported
+
+
+def stretched_bar(cells, **settings):
+    """A Simulation of a bar of `cells` (nx, ny, nz) cells of 0.1 m, pinned at x = 0 and stretched."""
+    mesh = solver.box_mesh(size=(cells[0] / 10, cells[1] / 10, cells[2] / 10), cells=tuple(cells))
+    sim = solver.Simulation(mesh, solver.Material(E_PA, 0.3, 1000.0), dt=1 / 60,
+                            fixed=mesh.vertices[:, 0] < 1e-9, **settings)
+    sim.set_positions(mesh.vertices * np.array([STRETCH, 1.0, 1.0]))
+    return sim
+
+
+def checksum(sim) -> float:
+    """Sum of |x| over the positions: equal in two checkouts that took the same iterates."""
+    return float(np.abs(sim.positions).sum())
+
+
+def median_seconds(run) -> float:
+    """Median wall time of run() over REPEATS calls, after one untimed call (compiles, builds caches)."""
+    run()
+    samples = []
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        run()
+        samples.append(time.perf_counter() - start)
+    return float(np.median(samples))
+
+
+def iteration_time(cells, per_call, calls):
+    """(seconds per VBD iteration, checksum, tets), timed over `calls` calls of `per_call` iterations
+    each, within one step."""
+    sim = stretched_bar(cells, iterations=per_call)
+    sim.begin_step()
+
+    def run():
+        for _ in range(calls):
+            sim.run_iterations(per_call)
+    return median_seconds(run) / (per_call * calls), checksum(sim), sim.mesh.n_tets
+
+
+def step_time(cells, method, iterations):
+    """(seconds per step of `method`, checksum): the median of the steps after the first."""
+    sim = stretched_bar(cells, iterations=iterations, method=method)
+    seconds = median_seconds(sim.step)
+    return seconds, checksum(sim)
+
+
+def measure(sizes) -> dict:
+    """{measurement: [value, unit, checksum]} for the sizes and parts in `sizes`."""
+    results = {}
+    tets = 6 * int(np.prod(sizes["classroom"]))
+    for per_call, calls in ((50, 1), (1, 50)):
+        seconds, total, _ = iteration_time(sizes["classroom"], per_call, calls)
+        results[f"VBD iteration, {tets:,} tets ({per_call} per call)"] = [1e3 * seconds, "ms", total]
+    seconds, total, large = iteration_time(sizes["large"], 5, 1)
+    results[f"ns per tet-iteration, {large:,} tets"] = [1e9 * seconds / large, "ns", total]
+    if sizes["global"]:
+        for name, method, iterations in (("Newton step", solver.Method.NEWTON, 100),
+                                         ("Newton-PCG step", solver.Method.PCG, 100),
+                                         ("two-level step, 5 cycles", solver.Method.MULTILEVEL, 20)):
+            seconds, total = step_time(sizes["classroom"], method, iterations)
+            results[f"{name}, {tets:,} tets"] = [1e3 * seconds, "ms", total]
+    return results
+
+
+if __name__ == "__main__":
+    print("RESULT " + json.dumps(dict(solver=solver.__file__, results=measure(json.loads(sys.argv[1])))))
