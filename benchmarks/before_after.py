@@ -4,7 +4,7 @@ Each round runs every measurement once in each checkout, each in a new process, 
 two checkouts swapped from round to round; the summary gives the medians and the after/before ratio of
 every round. Measured (`benchmarks/speed_probe.py`, in the checkout it times): a VBD iteration of the
 stiff stretched bar at classroom size, ns per tet-iteration at ~96k tets, one step of the Newton,
-Newton-PCG and two-level methods; then the cold default demo (`python -m demo render stiffness_sweep`
+Newton-PCG and two-level methods, a step of 8 cubes with contact (where the checkout has contact); then the cold default demo (`python -m demo render stiffness_sweep`
 in a new process) and the interactive loop (`python -m benchmarks.interactive_fps`) of each checkout.
 "Before" is a git worktree of --against, made in a temporary folder and removed at the end (or a folder
 holding another checkout); "after" is this checkout as it is, uncommitted changes included.
@@ -27,7 +27,7 @@ from benchmarks.common import (ROOT, fail, output_folder, parser, positive, prin
 
 OUTPUTS = ("before_after.csv", "before_after.png", "summary.md")
 COLUMNS = ["round", "side", "code", "measurement", "unit", "value", "checksum"]
-PARTS = ("vbd", "global", "demo", "interactive")
+PARTS = ("vbd", "global", "contact", "demo", "interactive")
 FULL_SIZES = dict(classroom=[40, 4, 4], large=[40, 20, 20])     # 3,840 and 96,000 tets
 QUICK_SIZES = dict(classroom=[10, 2, 2], large=[20, 4, 4])      # 240 and 1,920 tets
 SUMMARY_COLUMNS = ["measurement", "unit", "before", "after", "ratio", "rounds", "checksum_gap"]
@@ -121,8 +121,9 @@ def interactive(folder: str, frames: int) -> dict:
 def measure(folder: str, args) -> dict:
     """Every measurement of the chosen parts, in the checkout at `folder`."""
     results = {}
-    if "vbd" in args.parts or "global" in args.parts:
-        sizes = dict(QUICK_SIZES if args.quick else FULL_SIZES, **{"global": "global" in args.parts})
+    if {"vbd", "global", "contact"} & set(args.parts):
+        sizes = dict(QUICK_SIZES if args.quick else FULL_SIZES, **{part: part in args.parts
+                                                                   for part in ("global", "contact")})
         results.update(probe(folder, sizes))
         if "vbd" not in args.parts:
             results = {k: v for k, v in results.items() if not k.startswith(("VBD", "ns per"))}
@@ -152,17 +153,18 @@ def summarise(rows: list) -> list:
         for r in mine:
             by_round.setdefault(r["round"], {})[r["side"]] = r["value"]
         ratios = [s["after"] / s["before"] for s in by_round.values() if {"before", "after"} <= set(s)]
+        medians = {side: [r["value"] for r in mine if r["side"] == side] for side in ("before", "after")}
         out.append(dict(measurement=name, unit=mine[0]["unit"],
-                        before=float(np.median([r["value"] for r in mine if r["side"] == "before"])),
-                        after=float(np.median([r["value"] for r in mine if r["side"] == "after"])),
-                        ratio=float(np.median(ratios)), rounds=", ".join(f"{q:.2f}" for q in ratios),
+                        **{side: float(np.median(v)) if v else "" for side, v in medians.items()},
+                        ratio=float(np.median(ratios)) if ratios else "",
+                        rounds=", ".join(f"{q:.2f}" for q in ratios),
                         checksum_gap=checksum_gap(mine)))
     return out
 
 
 def verdict(summary: list) -> str:
     """The line naming the measurements whose after/before median is over SLOWER_BY."""
-    worse = [s["measurement"] for s in summary if s["ratio"] > SLOWER_BY]
+    worse = [s["measurement"] for s in summary if s["ratio"] != "" and s["ratio"] > SLOWER_BY]
     return (f"Worse by more than {SLOWER_BY - 1:.0%}: {'; '.join(worse)}." if worse else
             f"Nothing is worse by more than {SLOWER_BY - 1:.0%}.")
 
@@ -181,11 +183,13 @@ def classroom_line(summary: list) -> str:
 
 
 def plot(summary: list, path: str) -> None:
-    """after/before of each measurement: one dot per round, a bar at the median, lines at 1 and SLOWER_BY."""
+    """after/before of each measurement both sides took: one dot per round, a bar at the median, lines at 1
+    and SLOWER_BY."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    summary = [s for s in summary if s["ratio"] != ""]
     fig, ax = plt.subplots(figsize=(8, 0.45 * len(summary) + 1.2))
     for i, s in enumerate(summary):
         ax.barh(i, s["ratio"], color="#9ab", height=0.6)
@@ -210,7 +214,7 @@ def main(argv=None):
                    help="the code before: a commit of this repository (checked out into a temporary worktree) "
                         "or the folder of another checkout")
     p.add_argument("--rounds", type=positive(int), default=3, quick=1, help="rounds of both checkouts in turn")
-    p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), quick=["vbd", "global"],
+    p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), quick=["vbd", "global", "contact"],
                    help=f"what to measure, of: {', '.join(PARTS)}")
     p.add_argument("--frames", type=positive(int), default=60, quick=5, help="timed frames of the interactive loop")
     args = p.parse_args(argv)

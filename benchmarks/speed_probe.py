@@ -2,7 +2,8 @@
 
 It imports nothing of `benchmarks` and only the public `solver` names that were there before the
 regroup (`box_mesh`, `Material`, `Method`, `Simulation` with `set_positions`, `begin_step`,
-`run_iterations`, `step`), so the same file times an older checkout: started as
+`run_iterations`, `step`), so the same file times an older checkout; the contact step runs only where
+the checkout has `solver.Contact` and `solver.merge_meshes` (issue 17). Started as
 
     python benchmarks/speed_probe.py '{"classroom": [40, 4, 4], "large": [40, 20, 20], "global": true}'
 
@@ -21,6 +22,8 @@ import solver
 E_PA = 1e6              # the stiff bar of the lecture's failure case
 STRETCH = 1.5           # the bar starts stretched to 1.5x its length along x, then is released
 REPEATS = 7             # timed calls per measurement; the median is reported
+CUBE, DROP = 0.08, 0.01     # m: the edge of each cube of the contact step, and its gap above the slab
+FALL_STEPS = 10             # steps before the contact step is timed: the cubes have landed on the slab
 
 
 def stretched_bar(cells, **settings):
@@ -67,6 +70,20 @@ def step_time(cells, method, iterations):
     return seconds, checksum(sim)
 
 
+def contact_step():
+    """(seconds per step, checksum, tets): 8 cubes of 48 tets, 2 x 2 side by side in two layers, dropped onto
+    a fixed slab with friction, timed after FALL_STEPS steps, once they rest on it and on each other."""
+    slab = solver.box_mesh(size=(0.4, 0.4, 0.02), cells=(6, 6, 1), origin=(-0.02, -0.02, -0.02))
+    cubes = [solver.box_mesh(size=(CUBE,) * 3, cells=(2, 2, 2),
+                             origin=(0.1 * i + 0.01 * layer, 0.1 * j, DROP + (CUBE + DROP) * layer))
+             for layer in range(2) for i in range(2) for j in range(2)]
+    mesh = solver.merge_meshes([slab] + cubes)
+    sim = solver.Simulation(mesh, solver.Material(1e5, 0.3, 1000.0), dt=1 / 60, fixed=np.arange(slab.n_vertices),
+                            iterations=20, contact=solver.Contact(stiffness=1e4, radius=0.005, friction=0.3))
+    sim.step(FALL_STEPS)
+    return median_seconds(sim.step), checksum(sim), mesh.n_tets
+
+
 def measure(sizes) -> dict:
     """{measurement: [value, unit, checksum]} for the sizes and parts in `sizes`."""
     results = {}
@@ -82,6 +99,9 @@ def measure(sizes) -> dict:
                                          ("two-level step, 5 cycles", solver.Method.MULTILEVEL, 20)):
             seconds, total = step_time(sizes["classroom"], method, iterations)
             results[f"{name}, {tets:,} tets"] = [1e3 * seconds, "ms", total]
+    if sizes.get("contact") and hasattr(solver, "Contact") and hasattr(solver, "merge_meshes"):
+        seconds, total, n = contact_step()
+        results[f"contact step, 8 cubes on a slab, {n:,} tets"] = [1e3 * seconds, "ms", total]
     return results
 
 

@@ -27,7 +27,8 @@ def test_a_checkout_against_itself_takes_the_same_iterates(tmp_path, capsys):
     data = rows(tmp_path / "before_after.csv")
     names = {r["measurement"] for r in data}
     assert {"VBD iteration, 240 tets (50 per call)", "ns per tet-iteration, 1,920 tets",
-            "Newton step, 240 tets", "two-level step, 5 cycles, 240 tets"} <= names
+            "Newton step, 240 tets", "two-level step, 5 cycles, 240 tets",
+            "contact step, 8 cubes on a slab, 600 tets"} <= names
     assert sorted((r["side"], r["measurement"]) for r in data) == sorted(
         (side, name) for side in ("before", "after") for name in names)
     for name in names:
@@ -77,13 +78,16 @@ def test_the_summary_takes_each_rounds_ratio_and_their_median():
             row(1, "before", "ns per tet-iteration, 96,000 tets", 20.0, "4"),
             row(1, "after", "ns per tet-iteration, 96,000 tets", 25.0, "4.000001"),
             row(1, "before", "cold default demo (process)", 7.0),
-            row(1, "after", "cold default demo (process)", 7.0)]
-    iteration, large, demo = summarise(data)
+            row(1, "after", "cold default demo (process)", 7.0),
+            row(1, "after", "contact step, 8 cubes on a slab, 600 tets", 5.0, "96")]     # before had no contact
+    iteration, large, demo, contact = summarise(data)
+    assert (contact["before"], contact["after"], contact["ratio"], contact["rounds"]) == ("", 5.0, "", "")
+    assert contact["checksum_gap"] == ""
     assert (iteration["before"], iteration["after"], iteration["rounds"]) == (1.0, 0.9, "0.50, 0.90, 0.80")
     assert iteration["ratio"] == pytest.approx(0.8)
     assert large["checksum_gap"] == pytest.approx(2.5e-7) and demo["checksum_gap"] == ""
     assert checksum_gap(data[:6]) == 0.0
-    assert verdict([iteration, demo]) == "Nothing is worse by more than 5%."
+    assert verdict([iteration, demo, contact]) == "Nothing is worse by more than 5%."
     assert verdict([iteration, large]) == "Worse by more than 5%: ns per tet-iteration, 96,000 tets."
     assert classroom_line([iteration, large]) == ("Classroom size (after): 234.4 ns per tet at 3,840 tets against "
                                                   "25.0 at 96,000 tets: 9.38x.")
