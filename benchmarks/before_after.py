@@ -4,12 +4,13 @@ Each round runs every measurement once in each checkout, each in a new process, 
 two checkouts swapped from round to round; the summary gives the medians and the after/before ratio of
 every round. Measured (`benchmarks/speed_probe.py`, in the checkout it times): a VBD iteration of the
 stiff stretched bar at classroom size, ns per tet-iteration at ~96k tets, one step of the Newton,
-Newton-PCG and two-level methods, a step of 8 cubes with contact (where the checkout has contact); then the cold default demo (`python -m demo render stiffness_sweep`
-in a new process) and the interactive loop (`python -m benchmarks.interactive_fps`) of each checkout.
+Newton-PCG and two-level methods, a step of 8 cubes with contact (where the checkout has contact);
+then the cold default demo (`python -m demo render stiffness_sweep` in a new process) and the interactive
+loop (`python -m benchmarks.interactive_fps`) of each checkout.
 "Before" is a git worktree of --against, made in a temporary folder and removed at the end (or a folder
 holding another checkout); "after" is this checkout as it is, uncommitted changes included.
 
-    python -m benchmarks.before_after --against 2e28f60 --out benchmarks/results/before_after
+    python -m benchmarks.before_after --against 2e28f60 --rounds 5 --out benchmarks/results/before_after
     python -m benchmarks.before_after --quick --against HEAD
 """
 import json
