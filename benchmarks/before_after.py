@@ -124,10 +124,8 @@ def measure(folder: str, args) -> dict:
     results = {}
     if {"vbd", "global", "contact"} & set(args.parts):
         sizes = dict(QUICK_SIZES if args.quick else FULL_SIZES, **{part: part in args.parts
-                                                                   for part in ("global", "contact")})
+                                                                   for part in ("vbd", "global", "contact")})
         results.update(probe(folder, sizes))
-        if "vbd" not in args.parts:
-            results = {k: v for k, v in results.items() if not k.startswith(("VBD", "ns per"))}
     if "demo" in args.parts:
         results.update(cold_demo(folder))
     if "interactive" in args.parts:
@@ -239,7 +237,8 @@ def main(argv=None):
         before.close()
     summary = summarise(rows)
     text = table(summary, SUMMARY_COLUMNS,
-                 title=f"Before ({codes['before']}) and after (this checkout), medians of {args.rounds} rounds; "
+                 title=f"Before ({codes['before']}) and after (this checkout), medians of {args.rounds} "
+                       f"round{'s' if args.rounds > 1 else ''}; "
                        "ratio: after / before, the median of the rounds'",
                  fmt={"before": lambda v: f"{v:.3g}", "after": lambda v: f"{v:.3g}", "ratio": lambda v: f"{v:.2f}",
                       "checksum_gap": lambda v: f"{v:.1g}"})

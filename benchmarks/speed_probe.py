@@ -5,7 +5,8 @@ regroup (`box_mesh`, `Material`, `Method`, `Simulation` with `set_positions`, `b
 `run_iterations`, `step`), so the same file times an older checkout; the contact step runs only where
 the checkout has `solver.Contact` and `solver.merge_meshes` (issue 17). Started as
 
-    python benchmarks/speed_probe.py '{"classroom": [40, 4, 4], "large": [40, 20, 20], "global": true}'
+    python benchmarks/speed_probe.py '{"classroom": [40, 4, 4], "large": [40, 20, 20], "vbd": true,
+                                       "global": true, "contact": true}'
 
 with that checkout first on PYTHONPATH, it prints ``RESULT {json}`` as its last line: for each
 measurement its value and a checksum of the positions it reached (sum of |x|), so that a driver can
@@ -86,15 +87,17 @@ def contact_step():
 
 
 def measure(sizes) -> dict:
-    """{measurement: [value, unit, checksum]} for the sizes and parts in `sizes`."""
+    """{measurement: [value, unit, checksum]} for the sizes and parts in `sizes`: the bars' cells
+    ("classroom", "large") and which parts to run ("vbd", "global", "contact"; a part left out is not run)."""
     results = {}
     tets = 6 * int(np.prod(sizes["classroom"]))
-    for per_call, calls in ((50, 1), (1, 50)):
-        seconds, total, _ = iteration_time(sizes["classroom"], per_call, calls)
-        results[f"VBD iteration, {tets:,} tets ({per_call} per call)"] = [1e3 * seconds, "ms", total]
-    seconds, total, large = iteration_time(sizes["large"], 10, 1, LARGE_REPEATS)
-    results[f"ns per tet-iteration, {large:,} tets"] = [1e9 * seconds / large, "ns", total]
-    if sizes["global"]:
+    if sizes.get("vbd"):
+        for per_call, calls in ((50, 1), (1, 50)):
+            seconds, total, _ = iteration_time(sizes["classroom"], per_call, calls)
+            results[f"VBD iteration, {tets:,} tets ({per_call} per call)"] = [1e3 * seconds, "ms", total]
+        seconds, total, large = iteration_time(sizes["large"], 10, 1, LARGE_REPEATS)
+        results[f"ns per tet-iteration, {large:,} tets"] = [1e9 * seconds / large, "ns", total]
+    if sizes.get("global"):
         for name, method, iterations in (("Newton step", solver.Method.NEWTON, 100),
                                          ("Newton-PCG step", solver.Method.PCG, 100),
                                          ("two-level step, 5 cycles", solver.Method.MULTILEVEL, 20)):
