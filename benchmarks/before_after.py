@@ -212,7 +212,7 @@ def main(argv=None):
     p.add_argument("--against", default="HEAD", metavar="COMMIT_OR_FOLDER",
                    help="the code before: a commit of this repository (checked out into a temporary worktree) "
                         "or the folder of another checkout")
-    p.add_argument("--rounds", type=positive(int), default=3, quick=1, help="rounds of both checkouts in turn")
+    p.add_argument("--rounds", type=positive(int), default=5, quick=1, help="rounds of both checkouts in turn")
     p.add_argument("--parts", nargs="+", choices=PARTS, default=list(PARTS), quick=["vbd", "global", "contact"],
                    help=f"what to measure, of: {', '.join(PARTS)}")
     p.add_argument("--frames", type=positive(int), default=60, quick=5, help="timed frames of the interactive loop")
