@@ -80,8 +80,11 @@ class Before:
 def run_in(folder: str, argv: list, timeout: float = 1200) -> subprocess.CompletedProcess:
     """Run `python argv` with the checkout at `folder` as working folder and first on the import path."""
     env = dict(os.environ, PYTHONPATH=folder, ENABLE_TAICHI_HEADER_PRINT="0")
-    proc = subprocess.run([sys.executable, *argv], cwd=folder, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    try:
+        proc = subprocess.run([sys.executable, *argv], cwd=folder, env=env, capture_output=True, text=True,
+                              timeout=timeout)
+    except subprocess.TimeoutExpired:
+        fail(f"{' '.join(argv[:3])} ran over {timeout:g} s in {folder}; measure fewer --parts")
     if proc.returncode != 0:
         fail(f"{' '.join(argv[:3])} failed in {folder}: {(proc.stderr.strip().splitlines() or ['?'])[-1]}")
     return proc
@@ -143,7 +146,8 @@ def checksum_gap(rows: list):
 
 
 def summarise(rows: list) -> list:
-    """One row per measurement: medians of before and after, the ratio of each round and their median."""
+    """One row per measurement: medians of before and after, the ratio of each round (round_ratios, and as
+    text in rounds) and their median."""
     names = list(dict.fromkeys(r["measurement"] for r in rows))
     out = []
     for name in names:
@@ -156,7 +160,7 @@ def summarise(rows: list) -> list:
         out.append(dict(measurement=name, unit=mine[0]["unit"],
                         **{side: float(np.median(v)) if v else "" for side, v in medians.items()},
                         ratio=float(np.median(ratios)) if ratios else "",
-                        rounds=", ".join(f"{q:.2f}" for q in ratios),
+                        round_ratios=ratios, rounds=", ".join(f"{q:.2f}" for q in ratios),
                         checksum_gap=checksum_gap(mine)))
     return out
 
@@ -168,17 +172,18 @@ def verdict(summary: list) -> str:
             f"Nothing is worse by more than {SLOWER_BY - 1:.0%}.")
 
 
-def classroom_line(summary: list) -> str:
-    """After's ns per tet of the classroom iteration over its ns per tet at the large size, where both ran."""
-    small = next((r for r in summary if r["measurement"].startswith("VBD iteration") and "(50 per call)"
-                  in r["measurement"]), None)
-    large = next((r for r in summary if r["measurement"].startswith("ns per tet-iteration")), None)
-    if small is None or large is None:
+def classroom_line(summary: list, sizes: dict) -> str:
+    """After's ns per tet of the classroom iteration over its ns per tet at the large size, where both ran;
+    sizes: the bars' cells (FULL_SIZES or QUICK_SIZES)."""
+    small, large = (6 * int(np.prod(sizes[bar])) for bar in ("classroom", "large"))
+    after = {s["measurement"]: s["after"] for s in summary}
+    iteration_ms = after.get(f"VBD iteration, {small:,} tets (50 per call)")
+    large_ns = after.get(f"ns per tet-iteration, {large:,} tets")
+    if iteration_ms is None or large_ns is None:
         return ""
-    tets = int(small["measurement"].split(", ")[1].split(" ")[0].replace(",", ""))
-    per_tet = 1e6 * small["after"] / tets
-    return (f"Classroom size (after): {per_tet:.1f} ns per tet at {tets:,} tets against {large['after']:.1f} at "
-            f"{large['measurement'].split(', ')[1]}: {per_tet / large['after']:.2f}x.")
+    per_tet = 1e6 * iteration_ms / small
+    return (f"Classroom size (after): {per_tet:.1f} ns per tet at {small:,} tets against {large_ns:.1f} at "
+            f"{large:,} tets: {per_tet / large_ns:.2f}x.")
 
 
 def plot(summary: list, path: str) -> None:
@@ -192,8 +197,7 @@ def plot(summary: list, path: str) -> None:
     fig, ax = plt.subplots(figsize=(8, 0.45 * len(summary) + 1.2))
     for i, s in enumerate(summary):
         ax.barh(i, s["ratio"], color="#9ab", height=0.6)
-        ratios = [float(q) for q in s["rounds"].split(", ") if q]
-        ax.plot(ratios, [i] * len(ratios), "k.", ms=5)
+        ax.plot(s["round_ratios"], [i] * len(s["round_ratios"]), "k.", ms=5)
     ax.axvline(1.0, color="k", lw=0.8)
     ax.axvline(SLOWER_BY, color="#c33", lw=0.8, ls="--")
     ax.set_yticks(range(len(summary)), [s["measurement"] for s in summary], fontsize=8)
@@ -244,7 +248,7 @@ def main(argv=None):
                       "checksum_gap": lambda v: f"{v:.1g}"})
     lines = [text, "checksum_gap: the largest relative difference between the sums of |x| the two checkouts "
                    "reached (0: the same iterates; the Newton methods stop at a step of 1e-8 of the body's size).",
-             verdict(summary), classroom_line(summary)]
+             verdict(summary), classroom_line(summary, QUICK_SIZES if args.quick else FULL_SIZES)]
     print("\n\n".join(line for line in lines if line))
     write_csv(os.path.join(out, "before_after.csv"), rows, COLUMNS)
     plot(summary, os.path.join(out, "before_after.png"))

@@ -43,7 +43,9 @@ def checksum(sim) -> float:
 
 
 def median_seconds(run, repeats=REPEATS) -> float:
-    """Median wall time of run() over `repeats` calls, after one untimed call (compiles, builds caches)."""
+    """Median wall time of run() over `repeats` calls, after one untimed call (compiles, builds caches). The
+    same as `benchmarks.newton_speed.median_seconds`, written again: this file runs inside checkouts whose
+    `benchmarks` is another version, or has none."""
     run()
     samples = []
     for _ in range(repeats):

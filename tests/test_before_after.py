@@ -89,5 +89,8 @@ def test_the_summary_takes_each_rounds_ratio_and_their_median():
     assert checksum_gap(data[:6]) == 0.0
     assert verdict([iteration, demo, contact]) == "Nothing is worse by more than 5%."
     assert verdict([iteration, large]) == "Worse by more than 5%: ns per tet-iteration, 96,000 tets."
-    assert classroom_line([iteration, large]) == ("Classroom size (after): 234.4 ns per tet at 3,840 tets against "
-                                                  "25.0 at 96,000 tets: 9.38x.")
+    assert iteration["round_ratios"] == pytest.approx([0.5, 0.9, 0.8])
+    sizes = dict(classroom=[40, 4, 4], large=[40, 20, 20])
+    assert classroom_line([iteration, large], sizes) == ("Classroom size (after): 234.4 ns per tet at 3,840 tets "
+                                                         "against 25.0 at 96,000 tets: 9.38x.")
+    assert classroom_line([iteration], sizes) == ""
