@@ -156,9 +156,9 @@ def summarise(rows: list) -> list:
         for r in mine:
             by_round.setdefault(r["round"], {})[r["side"]] = r["value"]
         ratios = [s["after"] / s["before"] for s in by_round.values() if {"before", "after"} <= set(s)]
-        medians = {side: [r["value"] for r in mine if r["side"] == side] for side in ("before", "after")}
+        values = {side: [r["value"] for r in mine if r["side"] == side] for side in ("before", "after")}
         out.append(dict(measurement=name, unit=mine[0]["unit"],
-                        **{side: float(np.median(v)) if v else "" for side, v in medians.items()},
+                        **{side: float(np.median(v)) if v else "" for side, v in values.items()},
                         ratio=float(np.median(ratios)) if ratios else "",
                         round_ratios=ratios, rounds=", ".join(f"{q:.2f}" for q in ratios),
                         checksum_gap=checksum_gap(mine)))
