@@ -8,6 +8,8 @@ would write ``import taichi as ti``, and ask this module (not ``ti.lang`` intern
 where the runtime is initialised, since that is where the two differ.
 """
 import functools
+import operator
+import weakref
 
 try:
     import taichi as ti
@@ -21,6 +23,9 @@ except ImportError:
 import numpy as np
 
 NAME = ti.__name__
+# `quick_kernel_calls`: the launch contexts a kernel keeps, per set of arrays and templates, for calls
+# with the same ones (a step calls most kernels with the same arrays; more sets than this start again).
+REUSED_CONTEXTS = 4
 
 
 def runtime():
@@ -194,6 +199,15 @@ def quick_kernel_calls() -> bool:
     goes Taichi's own way, as does the first call of each instance, which compiles it; so do all calls
     after ``ti.init`` again until each instance has been met once more. Errors are Taichi's own.
 
+    On the CPU, Taichi arrays are set by their host address, as numpy arrays are, and a kernel keeps the
+    launch contexts of its last few sets of Taichi arrays and template values (REUSED_CONTEXTS): a call
+    with the very same array objects (held by weak reference, so that a freed array's id met again is not
+    taken for it) and equal templates sets only its scalars into that context and launches it again.
+    Setting an array costs about a microsecond a launch, and a VBD iteration with contact passes 25
+    (`python -m benchmarks.before_after --parts vbd contact`: a contact step of 8 cubes on a slab took
+    0.79x the time, the same iterates). Calls with numpy arrays set everything each time (a numpy array
+    can be reshaped in place).
+
     Returns whether it is in place (False where this Taichi launches kernels otherwise, e.g. another
     version or Quadrants: nothing is changed then)."""
     from importlib import import_module
@@ -218,6 +232,7 @@ def quick_kernel_calls() -> bool:
         return True
     taichi_call = Kernel.__call__
     ARRAY, SCALAR_ARRAY, FLOAT, INT, UINT, TEMPLATE = range(6)
+    cpu_arch = ti.cpu
     template_types = (bool, int, float, str, type(None), data_type)
     signatures = {}                 # (element type, ndim) -> small int, so that keys hash quickly
     largest_index = np.iinfo(np.int32).max      # Taichi warns about larger arrays: its own call does that
@@ -269,11 +284,26 @@ def quick_kernel_calls() -> bool:
         memo = self.__dict__.get("_quick_calls")
         if memo is None or memo[0] is not runtime:
             readers = readers_of(self)
-            memo = self._quick_calls = (runtime, None if readers is None else plan_of(self), readers, {})
-        _, plan, readers, launches = memo
+            plan = None if readers is None else plan_of(self)
+            kinds = [] if plan is None else list(enumerate(plan))
+            held = tuple(i for i, (kind, _) in kinds if kind in (ARRAY, SCALAR_ARRAY))
+            chosen = tuple(i for i, (kind, _) in kinds if kind == TEMPLATE)
+            scalars = tuple((i, kind, slot) for i, (kind, slot) in kinds if kind in (FLOAT, INT, UINT))
+            reuse = {} if plan is not None and runtime.prog.config().arch == cpu_arch else None
+            pick = picker(held + chosen)
+            memo = self._quick_calls = (runtime, plan, readers, {}, held, chosen, scalars, reuse, pick)
+        _, plan, readers, launches, held, chosen, scalars, reuse, pick = memo
+        n_held = len(held)
         if (plan is None or kwargs or len(args) != len(plan) or self.autodiff_mode != none_mode or self.has_print
                 or runtime.fwd_mode_manager or runtime.target_tape):
             return taichi_call(self, *args, **kwargs)
+        if reuse is not None:
+            picked = pick(args)
+            known = reuse.get(tuple(map(id, picked)))
+            if known is not None and same_objects(known, picked, n_held):
+                if not nothing_to_materialise(runtime):
+                    runtime.materialize()
+                return launch(self, runtime, known[2], known[3], plan, scalars, args, readers, again=True, cpu=True)
         key = []
         for (kind, _), value in zip(plan, args):
             if kind == SCALAR_ARRAY and type(value) is np.ndarray:
@@ -292,9 +322,6 @@ def quick_kernel_calls() -> bool:
                 if not isinstance(value, template_types):
                     return taichi_call(self, *args, **kwargs)
                 key.append((type(value), value))
-            elif not isinstance(value, (int, float, np.integer, np.floating)) or (
-                    kind != FLOAT and not isinstance(value, (int, np.integer))):
-                return taichi_call(self, *args, **kwargs)
         key = tuple(key)
         found = launches.get(key)
         if found is None:
@@ -307,16 +334,58 @@ def quick_kernel_calls() -> bool:
         if not nothing_to_materialise(runtime):
             runtime.materialize()
         context = compiled.make_launch_context()
-        for (kind, slot), value in zip(plan, args):
-            if kind == SCALAR_ARRAY and type(value) is np.ndarray:
-                context.set_arg_external_array_with_shape(slot, value.ctypes.data, value.nbytes, value.shape, 0)
-            elif kind in (ARRAY, SCALAR_ARRAY):
-                context.set_arg_ndarray(slot, value.arr)
+        if reuse is not None and all(type(args[i]) is not np.ndarray for i in held):
+            if len(reuse) >= REUSED_CONTEXTS:
+                reuse.clear()
+            picked = pick(args)
+            reuse[tuple(map(id, picked))] = (tuple(map(weakref.ref, picked[:n_held])), picked[n_held:], code, context)
+        return launch(self, runtime, code, context, plan, scalars, args, readers, again=False, cpu=reuse is not None)
+
+    def host_array(runtime, value):
+        """(address, bytes, shape) of a Taichi array on the CPU, cached on it. Set this way, a launch
+        context stays right for the next launch: Taichi's CPU launcher turns an array set with
+        `set_arg_ndarray` into its host address inside the context at launch, marks it as such, and at the
+        next launch would pass the address of its allocation record in its place."""
+        found = value.__dict__.get("_host_array")
+        if found is None:
+            found = value._host_array = (runtime.prog.get_ndarray_data_ptr_as_int(value.arr),
+                                         value.arr.nelement() * value.arr.element_size(), tuple(value.shape))
+        return found
+
+    def picker(indices):
+        """A function of a call's arguments returning the tuple of those at `indices`."""
+        get = operator.itemgetter(*indices) if indices else (lambda args: ())
+        return get if len(indices) != 1 else (lambda args: (args[indices[0]],))
+
+    def same_objects(known, picked, n_held):
+        """Whether a kept context (weak references to its arrays, its template values, ...) was set with
+        the very arrays and equal templates of `picked` (the call's arrays, then its templates)."""
+        if not all(map(operator.is_, [ref() for ref in known[0]], picked[:n_held])):
+            return False
+        return all(type(a) is type(b) and a == b for a, b in zip(picked[n_held:], known[1]))
+
+    def launch(kernel, runtime, code, context, plan, scalars, args, readers, again, cpu):
+        """Set the arguments into context (again: only the scalars, into a context set before with these
+        arrays and templates), launch and return the kernel's values. cpu: Taichi arrays are set by their
+        host address, as numpy arrays are (`host_array`)."""
+        if not again:
+            for (kind, slot), value in zip(plan, args):
+                if kind == SCALAR_ARRAY and type(value) is np.ndarray:
+                    context.set_arg_external_array_with_shape(slot, value.ctypes.data, value.nbytes, value.shape, 0)
+                elif kind in (ARRAY, SCALAR_ARRAY) and cpu:
+                    context.set_arg_external_array_with_shape(slot, *host_array(runtime, value), 0)
+                elif kind in (ARRAY, SCALAR_ARRAY):
+                    context.set_arg_ndarray(slot, value.arr)
+        for i, kind, slot in scalars:
+            value = args[i]
+            if not isinstance(value, (int, float, np.integer, np.floating)) or (
+                    kind != FLOAT and not isinstance(value, (int, np.integer))):
+                return taichi_call(kernel, *args)
             elif kind == FLOAT:
                 context.set_arg_float(slot, float(value))
             elif kind == INT:
                 context.set_arg_int(slot, int(value))
-            elif kind == UINT:
+            else:
                 context.set_arg_uint(slot, int(value))
         try:
             runtime.prog.launch_kernel(code, context)

@@ -242,6 +242,44 @@ def test_quick_calls_set_numpy_arrays_as_taichi_does(monkeypatch):
     np.testing.assert_array_equal(b, b0 * 0.5 + a0[:, None])
 
 
+@_ti.ti.kernel
+def _accumulate(a: _ti.ti.types.ndarray(), b: _ti.ti.types.ndarray(), s: _ti.ti.f64, k: _ti.ti.template()):
+    for i in range(a.shape[0]):
+        a[i] += s * k
+        b[i] += _ti.ti.Vector([s, k, 1.0])
+
+
+@pytest.mark.backend
+def test_quick_calls_relaunch_a_kept_context_with_the_same_arrays():
+    """On the CPU a call with the very arrays and templates of an earlier call launches the context kept
+    from it, setting only its scalars, for up to REUSED_CONTEXTS sets of arrays a kernel. What it writes,
+    and what Taichi's own copies read after it, are what a call that sets everything gives; so are calls on
+    arrays made after others were freed (a freed array's id may come back). Set with `set_arg_ndarray`, a
+    context launched twice would hand the kernel the address of the allocation record instead."""
+    _quick_or_skip()
+    if _ti.initialised_arch() != _ti.ti.cpu:
+        pytest.skip("launch contexts are kept on the CPU only")
+    for _ in range(2):
+        arrays = [(_ti.ti.ndarray(_ti.ti.f64, 5), _ti.ti.Vector.ndarray(3, _ti.ti.f64, 5))
+                  for _ in range(_ti.REUSED_CONTEXTS + 2)]
+        expected = [(np.zeros(5), np.zeros((5, 3))) for _ in arrays]
+        for a, b in arrays:
+            a.fill(0)
+            b.fill(0)
+        for sweep in range(3):
+            for j, ((a, b), (want_a, want_b)) in enumerate(zip(arrays, expected)):
+                for k in (1, 2, 1):
+                    s = 0.25 * (1 + sweep + j)
+                    _accumulate(a, b, s, k)
+                    want_a += s * k
+                    want_b += [s, k, 1.0]
+                np.testing.assert_array_equal(a.to_numpy(), want_a)
+                np.testing.assert_array_equal(b.to_numpy(), want_b)
+        kept = _accumulate._primal.__dict__["_quick_calls"][7]      # the kernel's kept contexts
+        assert 0 < len(kept) <= _ti.REUSED_CONTEXTS
+        del arrays
+
+
 @pytest.mark.backend
 def test_calls_the_quick_way_does_not_handle_go_taichis_way():
     """numpy arrays that are not C-contiguous (Taichi copies a Fortran-ordered one and back, and refuses
