@@ -46,7 +46,7 @@ serial: run the colours, and the writes after each, on one CPU thread (`vertex_s
 the other kernels, every loop on one thread, for the same small meshes.
 While no pair is listed the iteration is `vbd_bounded_iteration` instead: the plain sweep plus the clamp,
 without the write loops (on the CPU a parallel loop costs tens of us even when empty) and with ten arrays to
-pass instead of 25 (each costs microseconds a launch).
+pass instead of 25 (each adds to the cost of a launch).
 """
 from .._ti import ti
 
