@@ -242,6 +242,48 @@ def test_bodies_that_cannot_have_pairs_are_left_out_and_the_pairs_stay_exact():
     assert any(case == 1 and near for case, _, _, near in seen)
 
 
+def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
+    """A body that seeks self pairs (not rigid) still leaves them out at each query whose own primitive
+    cannot have one: its vertices' deviation from the rigid fit plus the body's largest, under its own
+    D_min(Q) - q (listed at rest, checked here against all same-body pairs). A bar squashed towards
+    one end, by more or less: the pairs are the brute-force ones, and only some queries seek self pairs."""
+    from solver.physics.contact_detection import REST_MARGIN, SEARCH_SELF
+
+    solver.ensure_taichi()
+    rng = np.random.default_rng(3)
+    bar = solver.box_mesh(size=(0.3, 0.03, 0.03), cells=(10, 1, 1))
+    contact = solver.Contact(radius=0.004, query_radius=0.015)
+    free = np.ones(bar.n_vertices, dtype=bool)
+    detector = ContactDetector(bar, free, contact)
+    surface, q, X = detector.surface, contact.query_radius, bar.vertices
+    V, T = np.meshgrid(np.arange(len(surface.vertices)), np.arange(len(surface.triangles)), indexing="ij")
+    v, t = surface.vertices[V.ravel()], surface.triangles[T.ravel()]
+    d_vt = point_triangle_np(X[v], X[t[:, 0]], X[t[:, 1]], X[t[:, 2]])[0]
+    A, B = np.triu_indices(len(surface.edges), k=1)
+    ea, eb = surface.edges[A], surface.edges[B]
+    d_ee = edge_edge_np(X[ea[:, 0]], X[ea[:, 1]], X[eb[:, 0]], X[eb[:, 1]])[0]
+    d_min = np.full(len(surface.vertices) + len(surface.edges), REST_MARGIN * q)    # one body: every pair
+    for query, d, disjoint in ((V.ravel(), d_vt, ~(t == v[:, None]).any(axis=1)),
+                               (len(surface.vertices) + A, d_ee, ~(ea[:, :, None] == eb[:, None, :]).any(axis=(1, 2)))):
+        keep = disjoint & (d >= q)                      # closer at rest: excluded
+        np.minimum.at(d_min, query[keep], d[keep])
+    np.testing.assert_allclose(detector._self_margin.to_numpy(), d_min - q, rtol=0, atol=1e-12)
+    seen = []
+    for _ in range(12):
+        x = bar.vertices.copy()
+        squash = rng.uniform(0.2, 0.7) * np.clip((x[:, 0] - 0.2) / 0.1, 0, 1) ** 2     # the last third
+        x[:, 1:] = 0.015 + (x[:, 1:] - 0.015) * (1 - squash)[:, None]
+        x += rng.normal(0, 1e-4, x.shape)
+        n = detector.detect(_positions(x))
+        kind, vertices, primitives, distance = detector.pairs()
+        assert {(int(k), int(a), int(b)) for k, (a, b) in zip(kind, primitives)} == brute_force_pairs(
+            bar, x, free, contact).keys()
+        assert detector.active.to_numpy()[0] & SEARCH_SELF
+        seen.append((n, detector.self_queries()))
+    assert all(0 < queries < len(d_min) for _, queries in seen)       # some queries sought self pairs, not all
+    assert sum(n > 0 for n, _ in seen) >= 6                             # and found them
+
+
 def test_queries_skip_only_their_own_bodys_items():
     """A query of a body that seeks no self pair skips its own body's run of items in each bucket: the
     ranges cover exactly each body's triangles and edges where they are contiguous, none where bodies
@@ -322,18 +364,24 @@ def test_float32_positions_give_the_same_pairs():
 
 
 def test_one_thread_and_parallel_loops_find_the_same_pairs():
-    """A small mesh on the CPU detects on one thread (SERIAL_DETECT_TETS), a large one in parallel loops:
-    the pairs, their order, the incidence lists and the bounds are the same either way."""
+    """A small mesh on the CPU detects on one thread (SERIAL_DETECT_TETS, SERIAL_DETECT_QUERIES), a larger
+    one with its queries in a parallel loop, a large one in parallel loops: the pairs, their order, the
+    incidence lists and the bounds are the same either way."""
     solver.ensure_taichi()
     rng = np.random.default_rng(23)
     mesh = _scene(rng, n_bodies=4)
     contact = solver.Contact(radius=0.01, query_radius=0.08)
     free = np.ones(mesh.n_vertices, bool)
-    one, many = ContactDetector(mesh, free, contact), ContactDetector(mesh, free, contact)
-    one._one_thread, many._one_thread = True, False
+    detectors = [ContactDetector(mesh, free, contact) for _ in range(3)]
+    for detector, (one_thread, serial_queries) in zip(detectors, ((True, True), (True, False), (False, False))):
+        detector._one_thread, detector._serial_queries = one_thread, serial_queries
+    one = detectors[0]
     for _ in range(3):
         x = _positions(mesh.vertices + rng.normal(0, 0.015, mesh.vertices.shape))
-        assert one.detect(x) == many.detect(x) > 0
-        for a, b in zip(one.pairs() + one.vertex_pairs(), many.pairs() + many.vertex_pairs()):
-            np.testing.assert_array_equal(a, b)
-        np.testing.assert_array_equal(one.bound.to_numpy(), many.bound.to_numpy())
+        n = one.detect(x)
+        assert n > 0
+        for many in detectors[1:]:
+            assert many.detect(x) == n
+            for a, b in zip(one.pairs() + one.vertex_pairs(), many.pairs() + many.vertex_pairs()):
+                np.testing.assert_array_equal(a, b)
+            np.testing.assert_array_equal(one.bound.to_numpy(), many.bound.to_numpy())

@@ -16,7 +16,8 @@ One detection is two kernel launches (their top-level loops run one after the ot
      pass notes each pair with its query and its rank there, a prefix sum of the counts per query places
      them in order of query and rank (the same order on every run, whatever the threads did). A query
      of a body that has no self pair to seek skips its own body's items in each bucket with one binary
-     search, as they cannot be its partners: where a body's triangles (or edges) are contiguous in the
+     search, as they cannot be its partners (nor does a query of a body that seeks them whose own
+     primitive cannot have one, below): where a body's triangles (or edges) are contiguous in the
      grid's numbering, as `merge_meshes` makes them, a sorted bucket holds them as one run
      (`own_item_ranges`; nothing is skipped where bodies interleave);
   4. per-vertex incidence lists (CSR: offsets, pair ids ascending), so that a vertex gathers its terms
@@ -32,7 +33,13 @@ rigid motion keeps every distance, and moving each vertex by at most delta moves
 or edge (a convex combination of its vertices) by at most delta, so two primitives D apart at rest are
 at least D - 2 delta apart now. The same-body pairs that are not excluded were D >= q apart at rest; if
 the closest of them (D_min, listed once at rest, capped at REST_MARGIN q) has D_min - 2 delta > q, none is
-within q. Any rotation R keeps this true; `best_rotation` takes one near the best fit. Buffers grow when a
+within q. Any rotation R keeps this true; `best_rotation` takes one near the best fit. The same bound holds
+per query: a query primitive Q (a surface vertex, or an edge against those of higher index) whose vertices
+lie within delta_Q of their rigid places, and whose closest same-body partner that is not excluded was
+D_min(Q) apart at rest (listed once, capped at REST_MARGIN q), is at least D_min(Q) - delta_Q - delta from
+each of them, so where that exceeds q its query skips its own body's items even though the body seeks
+self pairs. In a settled pile of soft balls, where the bottom ones are squashed by millimetres, most
+queries are far from where their body bends (27 coarse balls: a detection in 0.78x the time). Buffers grow when a
 detection needs more room (no pair is ever dropped: the launch is repeated); otherwise nothing is
 allocated per detection.
 """
@@ -55,7 +62,11 @@ RIGID_SLACK = 1e-3       # x q: round-off allowance when `active_bodies` compare
 # vertex_solve.SERIAL_SWEEP_TETS: each parallel loop costs tens of us to start and end on the CPU backend,
 # more than its work on a small mesh (2 shared cores: 0.75x the time of the parallel loops on a pile of one
 # ball, 0.86x on 64 cubes, 5,376 tets; 0.93x on 64 balls, 9,600 tets, but 1.14x on 24,576 touching tets).
+# All but the queries' loop, which holds most of a pile's work: it runs on one thread only below
+# SERIAL_DETECT_QUERIES surface vertices and edges (settled piles, 2 shared cores, against every loop on
+# one thread: 1.2x the time with 580 queries, 0.91x with 2,042, 0.66x with 8,256, 0.63x with 10,090).
 SERIAL_DETECT_TETS = 6000
+SERIAL_DETECT_QUERIES = 1000
 
 
 @ti.func
@@ -118,15 +129,16 @@ def active_bodies(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types
                   body: ti.types.ndarray(), rest: ti.types.ndarray(), rest_centroid: ti.types.ndarray(),
                   count: ti.types.ndarray(), has_free: ti.types.ndarray(), margin: ti.types.ndarray(),
                   lo: ti.types.ndarray(), hi: ti.types.ndarray(), centroid: ti.types.ndarray(),
-                  rotation: ti.types.ndarray(), deviation: ti.types.ndarray(), active: ti.types.ndarray(),
-                  q: ti.f64, self_contact: ti.i32, serial: ti.template()) -> ti.i32:
+                  rotation: ti.types.ndarray(), deviation: ti.types.ndarray(), vertex_deviation: ti.types.ndarray(),
+                  active: ti.types.ndarray(), q: ti.f64, self_contact: ti.i32, serial: ti.template()) -> ti.i32:
     """Step 0 of the module docstring: active[b] = the pairs body b may have at x = positions[row], as flags
     SEARCH_OTHERS (its box grown by q meets another body's; one of them has a free vertex) and SEARCH_SELF
     (with self contact: it has a free vertex and moved too far from rigid); returns how many bodies have
     any. vertices (V,) the surface vertices, rest (V,) their rest positions, and per body (B,):
     rest_centroid C, count its surface vertices, has_free whether it has a free vertex, margin D_min - q
-    in m; lo/hi (the boxes), centroid, rotation (3x3) and deviation (delta, m) are scratch. In float64
-    whatever the positions' type."""
+    in m; lo/hi (the boxes), centroid and rotation (3x3) are scratch; on return deviation (B,) holds each
+    body's delta and vertex_deviation (N,) each surface vertex's distance from its rigid place, in m (read
+    by `detect_pairs`). In float64 whatever the positions' type."""
     n_bodies = active.shape[0]
     ti.loop_config(serialize=serial)
     for b in range(n_bodies):
@@ -151,7 +163,9 @@ def active_bodies(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types
     for k in range(vertices.shape[0]):
         b = body[vertices[k]]
         p = ti.cast(positions[row, vertices[k]], ti.f64)
-        ti.atomic_max(deviation[b], (p - centroid[b] - rotation[b] @ (rest[k] - rest_centroid[b])).norm())
+        off = (p - centroid[b] - rotation[b] @ (rest[k] - rest_centroid[b])).norm()
+        vertex_deviation[vertices[k]] = off
+        ti.atomic_max(deviation[b], off)
     n_active = 0
     ti.loop_config(serialize=serial)
     for b in range(n_bodies):
@@ -238,8 +252,9 @@ def is_excluded(keys: ti.template(), begin, end, key):
 @ti.func
 def admissible(same_body, search, excluded: ti.template(), within, key, rest_mode):
     """Whether two primitives that share no vertex, not both still, make a pair (module docstring):
-    same_body, search the first one's body's `active_bodies` flags, `key` their entry in the sorted rest
-    exclusions, looked up (only for a body that may have self pairs) in within = [begin, end) of
+    same_body, search the pairs the query seeks (`active_bodies` flags, less SEARCH_SELF where its own
+    primitive cannot have a self pair), `key` their entry in the sorted rest exclusions, looked up (only
+    for a query that may have self pairs) in within = [begin, end) of
     `excluded`, the keys of the query's own primitive (a short run of the sorted keys, read in cache,
     where a search of all of them would miss it at each step). In rest mode: whether they lie in one
     body (to list the self-contact exclusions at rest)."""
@@ -311,7 +326,8 @@ def record(counter: ti.template(), found: ti.template(), found_distance: ti.temp
 @ti.kernel
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
-                 active: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
+                 active: ti.types.ndarray(), deviation: ti.types.ndarray(), vertex_deviation: ti.types.ndarray(),
+                 self_margin: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
                  moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), excluded_ee: ti.types.ndarray(),
                  excluded_range: ti.types.ndarray(),
                  box: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
@@ -323,10 +339,13 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                  pair: ti.types.ndarray(), primitives: ti.types.ndarray(), distance: ti.types.ndarray(),
                  offsets: ti.types.ndarray(), incidence: ti.types.ndarray(), bound: ti.types.ndarray(),
                  q: ti.f64, g: ti.f64, cell: ti.f64, mask: ti.i32, chunk: ti.i32,
-                 rest_mode: ti.i32, serial: ti.template(), one_thread: ti.template(), dtype: ti.template()) -> ti.i32:
+                 rest_mode: ti.i32, serial: ti.template(), one_thread: ti.template(), serial_queries: ti.template(),
+                 dtype: ti.template()) -> ti.i32:
     """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
     every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
-    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs. excluded_vt,
+    edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs and the query's
+    own primitive may have one: deviation (B,) and vertex_deviation (N,) from `active_bodies`, self_margin
+    (V + E,) D_min(Q) - q of each query in m (module docstring; not read in rest mode). excluded_vt,
     excluded_ee: the sorted keys of the rest exclusions; excluded_range (V + E,) 2-vectors: [begin, end) of
     each query's own keys there (`admissible`).
     Grid: box (2, T + E) the items' boxes (triangles, then edges; lower corners in row 0, upper in row 1),
@@ -335,10 +354,11 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     narrow phase reads a bucket's boxes one after the other, not each item's from box); moving (T + E,)
     whether an item has a free vertex. Pairs: each query (the V surface vertices, then the E edges) notes
     its pairs with their rank in found (3-vectors: query, rank, partner) and found_distance (capacity C;
-    counter (1,) counts them), then they are written to kind/pair/primitives/distance (C,) at query_start[query] +
-    rank and listed per vertex in offsets (N + 1,)/incidence (4C,) (vertex_fill (N,) zero on entry and
-    exit). serial: prefix sums in one serial loop (CPU); one_thread: every loop on one thread (small
-    meshes on the CPU, `SERIAL_DETECT_TETS`). Returns the number of pairs; if they exceed C,
+    counter (2,) counts them, and the queries that sought self pairs), then they are written to
+    kind/pair/primitives/distance (C,) at query_start[query] + rank and listed per vertex in offsets
+    (N + 1,)/incidence (4C,) (vertex_fill (N,) zero on entry and exit). serial: prefix sums in one serial
+    loop (CPU); one_thread: every other loop on one thread (small meshes on the CPU, `SERIAL_DETECT_TETS`)
+    and serial_queries the queries too (`SERIAL_DETECT_QUERIES`). Returns the number of pairs; if they exceed C,
     nothing past `found` is written; if the grid's entries exceed their buffer, -(entries needed) and
     no pair is sought."""
     n_vertices = vertices.shape[0]
@@ -365,6 +385,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     n_entries = bucket_start[n_buckets]
     fits = n_entries <= entries.shape[0]
     counter[0] = 0
+    counter[1] = 0
     ti.loop_config(serialize=one_thread)
     for item in range(n_items):                 # counts back down to zero, ready for the next detection
         for i, j, k in ti.ndrange((lo[item][0], hi[item][0] + 1), (lo[item][1], hi[item][1] + 1),
@@ -380,15 +401,25 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     for e in range(n_entries if fits else 0):
         entry_box[0, e] = box[0, entries[e]]
         entry_box[1, e] = box[1, entries[e]]
-    ti.loop_config(serialize=one_thread)
+    ti.loop_config(serialize=serial_queries)
     for query in range(n_vertices + n_edges if fits else 0):
         rank = 0
         searched = True
+        flags = 0                               # the pairs this query seeks (`active_bodies` flags)
         own = ti.Vector([0, 0, 0, 0])           # the item ranges this query skips: none
         if rest_mode == 0:
             first = vertices[query] if query < n_vertices else edges[query - n_vertices][0]
-            searched = active[body[first]] != 0
-            if not active[body[first]] & SEARCH_SELF:
+            flags = active[body[first]]
+            if flags & SEARCH_SELF:             # its own primitive may be too far from any partner
+                moved = vertex_deviation[first]
+                if query >= n_vertices:
+                    moved = ti.max(moved, vertex_deviation[edges[query - n_vertices][1]])
+                if moved + deviation[body[first]] < self_margin[query] - RIGID_SLACK * q:   # false for NaN
+                    flags -= SEARCH_SELF
+                else:
+                    ti.atomic_add(counter[1], 1)
+            searched = flags != 0
+            if not flags & SEARCH_SELF:
                 own = own_items[body[first]]
         if searched and query < n_vertices:     # a surface vertex against the triangles
             v = vertices[query]
@@ -414,7 +445,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                         t = triangles[item]
                         if v != t[0] and v != t[1] and v != t[2]:
                             key = ti.cast(v, ti.i64) * n_triangles + item
-                            if admissible(body[v] == body[t[0]], active[body[v]], excluded_vt, excluded_range[query],
+                            if admissible(body[v] == body[t[0]], flags, excluded_vt, excluded_range[query],
                                           key, rest_mode):
                                 d, _ = point_triangle(p, positions[row, t[0]], positions[row, t[1]],
                                                       positions[row, t[2]], dtype)
@@ -444,7 +475,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                         eb = edges[b]
                         if ea[0] != eb[0] and ea[0] != eb[1] and ea[1] != eb[0] and ea[1] != eb[1]:
                             key = ti.cast(a, ti.i64) * n_edges + b
-                            if admissible(body[ea[0]] == body[eb[0]], active[body[ea[0]]], excluded_ee,
+                            if admissible(body[ea[0]] == body[eb[0]], flags, excluded_ee,
                                           excluded_range[query], key, rest_mode):
                                 d, _ = edge_edge(pa0, pa1, positions[row, eb[0]], positions[row, eb[1]], dtype)
                                 if d < q:
@@ -547,7 +578,7 @@ class ContactDetector:
         self._bucket_fill.fill(0)
         self._bucket_start = ti.ndarray(ti.i32, buckets + 1)
         self._allocate_entries(4 * (T + E))
-        self._counter = ti.ndarray(ti.i32, 1)
+        self._counter = ti.ndarray(ti.i32, 2)
         self._query_count = ti.ndarray(ti.i32, V + E)
         self._query_start = ti.ndarray(ti.i32, V + E + 1)
         self._vertex_fill = ti.ndarray(ti.i32, n)             # zero between detections
@@ -556,6 +587,7 @@ class ContactDetector:
         self._chunk = max(64, int(np.sqrt(longest)))
         self._serial = initialised_arch() == ti.cpu
         self._one_thread = self._serial and mesh.n_tets < SERIAL_DETECT_TETS
+        self._serial_queries = self._one_thread and V + E < SERIAL_DETECT_QUERIES
         self._partial = ti.ndarray(ti.i32, longest // self._chunk + 1)
         self.incidence_offsets = ti.ndarray(ti.i32, n + 1)
         self.bound = ti.ndarray(dtype, n)
@@ -570,15 +602,22 @@ class ContactDetector:
         self.active = ti.ndarray(ti.i32, B)
         self.active.fill(1)
         self.active_count = B
-        margin = np.full(B, (REST_MARGIN - 1) * contact.query_radius)   # D_min - q, m
+        self._deviation = ti.ndarray(ti.f64, B)
+        self._vertex_deviation = _device(np.zeros(n), ti.f64)
+        margin = np.full(B, (REST_MARGIN - 1) * contact.query_radius)       # D_min - q per body, m
+        self_margin = np.full(V + E, (REST_MARGIN - 1) * contact.query_radius)     # D_min(Q) - q per query, m
+        self._self_margin = _device(self_margin, ti.f64)
         if contact.self_contact:
-            margin = self._rest_exclusions(mesh, margin)
+            self_margin = self._rest_exclusions(mesh, self_margin)
+            self._self_margin.from_numpy(self_margin)
+            np.minimum.at(margin, self.bodies[np.concatenate([self.surface.vertices, self.surface.edges[:, 0]])],
+                          self_margin)
         self._init_bodies(mesh.vertices, free, margin)
 
-    def _rest_exclusions(self, mesh, margin: np.ndarray) -> np.ndarray:
+    def _rest_exclusions(self, mesh, self_margin: np.ndarray) -> np.ndarray:
         """List the same-body pairs closer than q at rest (never pairs, sorted keys on the device) and
-        return margin (B,) lowered to D_min - q per body from those REST_MARGIN q or closer (module
-        docstring)."""
+        return self_margin (V + E,) lowered to D_min(Q) - q per query Q (its surface vertex, then its edge)
+        from those REST_MARGIN q or closer (module docstring)."""
         q = self.contact.query_radius
         T, E = len(self.surface.triangles), len(self.surface.edges)
         rest = ti.Vector.ndarray(3, self.dtype, (1, mesh.n_vertices))
@@ -597,8 +636,11 @@ class ContactDetector:
             [np.stack([np.searchsorted(k, lo), np.searchsorted(k, lo + size)], axis=1)
              for k, lo, size in zip(keys, first, (T, E))]).astype(np.int32))
         self.n_pairs = 0
-        np.minimum.at(margin, self.bodies[vertices[~close, 0]], distance[~close].astype(np.float64) - q)
-        return margin
+        query = len(self.surface.vertices) + primitives[:, 0].astype(np.int64)      # an edge's query
+        vt = kind == PairKind.VERTEX_TRIANGLE
+        query[vt] = np.searchsorted(self.surface.vertices, primitives[vt, 0])       # a vertex's
+        np.minimum.at(self_margin, query[~close], distance[~close].astype(np.float64) - q)
+        return self_margin
 
     def _init_bodies(self, rest: np.ndarray, free: np.ndarray, margin: np.ndarray):
         """The per-body arrays of `active_bodies`: rest (N, 3) positions, free (N,) bool, margin (B,) m."""
@@ -621,7 +663,6 @@ class ContactDetector:
         self._body_hi = ti.Vector.ndarray(3, ti.f64, B)
         self._body_centroid = ti.Vector.ndarray(3, ti.f64, B)
         self._rotation = ti.Matrix.ndarray(3, 3, ti.f64, B)
-        self._deviation = ti.ndarray(ti.f64, B)
 
     def _allocate_entries(self, capacity: int):
         self._entries = ti.ndarray(ti.i32, capacity)
@@ -646,14 +687,16 @@ class ContactDetector:
             self.active_count = active_bodies(positions, row, self._vertices, self._body, self._rest_surface,
                                               self._rest_centroid, self._surface_count, self._has_free, self._margin,
                                               self._body_lo, self._body_hi, self._body_centroid, self._rotation,
-                                              self._deviation, self.active, q, int(c.self_contact), self._serial)
+                                              self._deviation, self._vertex_deviation, self.active, q,
+                                              int(c.self_contact), self._serial)
             if self.active_count == 0:
                 no_pairs(self.incidence_offsets, self.bound, c.bound_relaxation * q, self.dtype)
                 self.n_pairs = 0
                 return 0
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
-                                 self.active, self._own_items, self._free, self._moving, self._excluded_vt,
+                                 self.active, self._deviation, self._vertex_deviation, self._self_margin,
+                                 self._own_items, self._free, self._moving, self._excluded_vt,
                                  self._excluded_ee, self._excluded_range, self._box,
                                  self._lo, self._hi, self._bucket_fill, self._bucket_start, self._entries,
                                  self._entry_box, self._partial, self._counter, self._found, self._found_distance,
@@ -661,7 +704,7 @@ class ContactDetector:
                                  self.kind, self.pair, self.primitives, self.distance, self.incidence_offsets,
                                  self.incidence, self.bound, q, c.bound_relaxation, self.cell,
                                  self._mask, self._chunk, int(rest_mode), self._serial, self._one_thread,
-                                 self.dtype)
+                                 self._serial_queries, self.dtype)
             if found < 0:
                 self._allocate_entries(-2 * found)
             elif found > self._capacity:
@@ -681,6 +724,11 @@ class ContactDetector:
         P = self.n_pairs
         return (self.kind.to_numpy()[:P], self.pair.to_numpy()[:P], self.primitives.to_numpy()[:P],
                 self.distance.to_numpy()[:P])
+
+    def self_queries(self) -> int:
+        """How many queries of the last detection sought self pairs: those of the bodies searched for them
+        (`active` has SEARCH_SELF) whose own primitive may have one (module docstring)."""
+        return int(self._counter.to_numpy()[1]) if self.active_count else 0
 
     def vertex_pairs(self):
         """(offsets (N + 1,), pair ids (4P,)) of the last detection: vertex v's pairs are
