@@ -244,9 +244,11 @@ def test_bodies_that_cannot_have_pairs_are_left_out_and_the_pairs_stay_exact():
 
 def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
     """A body that seeks self pairs (not rigid) still leaves them out at each query whose own primitive
-    cannot have one: its vertices' deviation from the rigid fit plus the body's largest, under its own
-    D_min(Q) - q (listed at rest, checked here against all same-body pairs). A bar squashed towards
-    one end, by more or less: the pairs are the brute-force ones, and only some queries seek self pairs."""
+    cannot have one (`may_have_self_pair`): from its vertices' deviation from the rigid fit, the body's
+    largest, and its partners listed at rest with their own deviations (D_min(Q) and the lists checked
+    here against all same-body pairs). A bar squashed towards one end, by more or less, and a bar with
+    one vertex or one triangle pushed by a few mm: the pairs are the brute-force ones, and only some
+    queries seek self pairs."""
     from solver.physics.contact_detection import REST_MARGIN, SEARCH_SELF
 
     solver.ensure_taichi()
@@ -256,32 +258,54 @@ def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
     free = np.ones(bar.n_vertices, dtype=bool)
     detector = ContactDetector(bar, free, contact)
     surface, q, X = detector.surface, contact.query_radius, bar.vertices
-    V, T = np.meshgrid(np.arange(len(surface.vertices)), np.arange(len(surface.triangles)), indexing="ij")
+    n_queries, n_triangles = len(surface.vertices) + len(surface.edges), len(surface.triangles)
+    V, T = np.meshgrid(np.arange(len(surface.vertices)), np.arange(n_triangles), indexing="ij")
     v, t = surface.vertices[V.ravel()], surface.triangles[T.ravel()]
     d_vt = point_triangle_np(X[v], X[t[:, 0]], X[t[:, 1]], X[t[:, 2]])[0]
     A, B = np.triu_indices(len(surface.edges), k=1)
     ea, eb = surface.edges[A], surface.edges[B]
     d_ee = edge_edge_np(X[ea[:, 0]], X[ea[:, 1]], X[eb[:, 0]], X[eb[:, 1]])[0]
-    d_min = np.full(len(surface.vertices) + len(surface.edges), REST_MARGIN * q)    # one body: every pair
-    for query, d, disjoint in ((V.ravel(), d_vt, ~(t == v[:, None]).any(axis=1)),
-                               (len(surface.vertices) + A, d_ee, ~(ea[:, :, None] == eb[:, None, :]).any(axis=(1, 2)))):
+    d_min = np.full(n_queries, REST_MARGIN * q)    # one body: every pair is a same-body one
+    want = set()
+    for query, item, d, disjoint in (
+            (V.ravel(), T.ravel(), d_vt, ~(t == v[:, None]).any(axis=1)),
+            (len(surface.vertices) + A, n_triangles + B, d_ee, ~(ea[:, :, None] == eb[:, None, :]).any(axis=(1, 2)))):
         keep = disjoint & (d >= q)                      # closer at rest: excluded
         np.minimum.at(d_min, query[keep], d[keep])
+        listed = keep & (d < REST_MARGIN * q)
+        want |= {(int(a), int(b), round(float(c), 12)) for a, b, c in zip(query[listed], item[listed], d[listed])}
     np.testing.assert_allclose(detector._self_margin.to_numpy(), d_min - q, rtol=0, atol=1e-12)
+    start, items = detector._partner_start.to_numpy(), detector._partner_item.to_numpy()
+    distances = detector._partner_distance.to_numpy()
+    assert np.all(np.diff(start) >= 0) and start[-1] == len(want)
+    got = set()
+    for query in range(n_queries):
+        rows = slice(start[query], start[query + 1])
+        assert np.all(np.diff(distances[rows]) >= 0)    # ascending, so that the walk may stop early
+        got |= {(query, int(b), round(float(c), 12)) for b, c in zip(items[rows], distances[rows])}
+    assert got == want
     seen = []
-    for _ in range(12):
+    for case in range(60):
         x = bar.vertices.copy()
-        squash = rng.uniform(0.2, 0.7) * np.clip((x[:, 0] - 0.2) / 0.1, 0, 1) ** 2     # the last third
-        x[:, 1:] = 0.015 + (x[:, 1:] - 0.015) * (1 - squash)[:, None]
-        x += rng.normal(0, 1e-4, x.shape)
+        if case < 12:                                   # squashed across, towards one end
+            squash = rng.uniform(0.2, 0.7) * np.clip((x[:, 0] - 0.2) / 0.1, 0, 1) ** 2
+            x[:, 1:] = 0.015 + (x[:, 1:] - 0.015) * (1 - squash)[:, None]
+            x += rng.normal(0, 1e-4, x.shape)
+        else:                                           # one vertex, or one triangle, pushed
+            pushed = [rng.integers(bar.n_vertices)] if case % 2 else surface.triangles[rng.integers(n_triangles)]
+            x[pushed] += rng.normal(size=3) / np.sqrt(3) * rng.uniform(0.002, 0.008)
         n = detector.detect(_positions(x))
         kind, vertices, primitives, distance = detector.pairs()
         assert {(int(k), int(a), int(b)) for k, (a, b) in zip(kind, primitives)} == brute_force_pairs(
             bar, x, free, contact).keys()
-        assert detector.active.to_numpy()[0] & SEARCH_SELF
-        seen.append((n, detector.self_queries()))
-    assert all(0 < queries < len(d_min) for _, queries in seen)       # some queries sought self pairs, not all
-    assert sum(n > 0 for n, _ in seen) >= 6                             # and found them
+        searched = bool(detector.active.to_numpy()[0] & SEARCH_SELF)
+        assert searched or case >= 12                   # a squashed bar is not rigid
+        seen.append((case < 12, n, detector.self_queries() if searched else None))
+    assert all(0 < queries < n_queries for squashed, _, queries in seen if squashed)   # some queries, not all
+    assert sum(n > 0 for squashed, n, _ in seen if squashed) >= 6        # and they found self pairs
+    pushed = [(n, queries) for squashed, n, queries in seen if not squashed and queries is not None]
+    assert len(pushed) >= 30 and all(queries < n_queries for _, queries in pushed)
+    assert sum(n > 0 for n, _ in pushed) >= 10
 
 
 def test_queries_skip_only_their_own_bodys_items():

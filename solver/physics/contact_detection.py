@@ -34,12 +34,16 @@ or edge (a convex combination of its vertices) by at most delta, so two primitiv
 at least D - 2 delta apart now. The same-body pairs that are not excluded were D >= q apart at rest; if
 the closest of them (D_min, listed once at rest, capped at REST_MARGIN q) has D_min - 2 delta > q, none is
 within q. Any rotation R keeps this true; `best_rotation` takes one near the best fit. The same bound holds
-per query: a query primitive Q (a surface vertex, or an edge against those of higher index) whose vertices
-lie within delta_Q of their rigid places, and whose closest same-body partner that is not excluded was
-D_min(Q) apart at rest (listed once, capped at REST_MARGIN q), is at least D_min(Q) - delta_Q - delta from
-each of them, so where that exceeds q its query skips its own body's items even though the body seeks
-self pairs. In a settled pile of soft balls, where the bottom ones are squashed by millimetres, most
-queries are far from where their body bends (27 coarse balls: a detection in 0.78x the time). Buffers grow when a
+per query (`may_have_self_pair`): a query primitive Q (a surface vertex, or an edge against those of
+higher index) whose vertices lie within delta_Q of their rigid places is at least D - delta_Q - delta_P
+from a same-body partner P that was D apart at rest, delta_P <= delta the largest deviation of P's
+vertices. Its partners that are not excluded and were closer than REST_MARGIN q at rest are listed once,
+by rest distance (the least is D_min(Q)); the others stay beyond q while delta_Q + delta < q. Where
+none can come within q, its query skips its own body's items even though the body seeks self pairs. In
+a settled pile of soft balls, where the bottom ones are squashed by millimetres, most queries are far
+from where their body bends: 27 fine balls, 3,440 of 23,160 queries seek self pairs (12,429 with D_min(Q)
+- delta_Q - delta alone, all of them with the body's bound), and a detection takes 0.70x the time of
+the first of these. Buffers grow when a
 detection needs more room (no pair is ever dropped: the launch is repeated); otherwise nothing is
 allocated per detection.
 """
@@ -323,11 +327,49 @@ def record(counter: ti.template(), found: ti.template(), found_distance: ti.temp
         found_distance[s] = d
 
 
+@ti.func
+def may_have_self_pair(query, moved, spread, self_margin: ti.template(), partner_start: ti.template(),
+                       partner_item: ti.template(), partner_distance: ti.template(), triangles: ti.template(),
+                       edges: ti.template(), vertex_deviation: ti.template(), q):
+    """Whether query Q of a body that seeks self pairs may have one (module docstring): its vertices lie
+    within moved (delta_Q, m) of their rigid places, the body's within spread (delta). None where
+    D_min(Q) - delta_Q - delta > q (self_margin (V + E,) holds D_min(Q) - q), nor, while delta_Q + delta < q
+    (no partner farther than REST_MARGIN q at rest can come within q), where each partner listed at rest
+    (partner_start (V + E + 1,), then partner_item the grid items and partner_distance their rest distances D,
+    ascending per query) has D - delta_Q - delta_P > q, delta_P its own vertices' largest deviation; the
+    ascending order ends the walk at the first partner even delta could not bring within q. True for NaN."""
+    slack = RIGID_SLACK * q
+    reach = moved + spread
+    result = True
+    if reach < self_margin[query] - slack:
+        result = False
+    elif reach < (REST_MARGIN - 1) * q - slack:
+        result = False
+        s = partner_start[query]
+        end = partner_start[query + 1]
+        while s < end and partner_distance[s] - q - reach < slack:      # (a sentinel ends partner_distance)
+            item = partner_item[s]
+            partner_moved = ti.cast(0.0, ti.f64)
+            if item < triangles.shape[0]:
+                t = triangles[item]
+                partner_moved = ti.max(vertex_deviation[t[0]], vertex_deviation[t[1]], vertex_deviation[t[2]])
+            else:
+                e = edges[item - triangles.shape[0]]
+                partner_moved = ti.max(vertex_deviation[e[0]], vertex_deviation[e[1]])
+            if not partner_distance[s] - q - moved - partner_moved >= slack:
+                result = True
+                break
+            s += 1
+    return result
+
+
 @ti.kernel
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
                  active: ti.types.ndarray(), deviation: ti.types.ndarray(), vertex_deviation: ti.types.ndarray(),
-                 self_margin: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
+                 self_margin: ti.types.ndarray(), partner_start: ti.types.ndarray(),
+                 partner_item: ti.types.ndarray(), partner_distance: ti.types.ndarray(),
+                 own_items: ti.types.ndarray(), free: ti.types.ndarray(),
                  moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), excluded_ee: ti.types.ndarray(),
                  excluded_range: ti.types.ndarray(),
                  box: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
@@ -344,8 +386,8 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     """Steps 1-5 of the module docstring in one launch, for the bodies b with active[b] != 0 (step 0;
     every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
     edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs and the query's
-    own primitive may have one: deviation (B,) and vertex_deviation (N,) from `active_bodies`, self_margin
-    (V + E,) D_min(Q) - q of each query in m (module docstring; not read in rest mode). excluded_vt,
+    own primitive may have one (`may_have_self_pair`: deviation (B,) and vertex_deviation (N,) from
+    `active_bodies`, self_margin, partner_start, partner_item, partner_distance; not read in rest mode). excluded_vt,
     excluded_ee: the sorted keys of the rest exclusions; excluded_range (V + E,) 2-vectors: [begin, end) of
     each query's own keys there (`admissible`).
     Grid: box (2, T + E) the items' boxes (triangles, then edges; lower corners in row 0, upper in row 1),
@@ -414,10 +456,11 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 moved = vertex_deviation[first]
                 if query >= n_vertices:
                     moved = ti.max(moved, vertex_deviation[edges[query - n_vertices][1]])
-                if moved + deviation[body[first]] < self_margin[query] - RIGID_SLACK * q:   # false for NaN
-                    flags -= SEARCH_SELF
-                else:
+                if may_have_self_pair(query, moved, deviation[body[first]], self_margin, partner_start,
+                                      partner_item, partner_distance, triangles, edges, vertex_deviation, q):
                     ti.atomic_add(counter[1], 1)
+                else:
+                    flags -= SEARCH_SELF
             searched = flags != 0
             if not flags & SEARCH_SELF:
                 own = own_items[body[first]]
@@ -607,6 +650,9 @@ class ContactDetector:
         margin = np.full(B, (REST_MARGIN - 1) * contact.query_radius)       # D_min - q per body, m
         self_margin = np.full(V + E, (REST_MARGIN - 1) * contact.query_radius)     # D_min(Q) - q per query, m
         self._self_margin = _device(self_margin, ti.f64)
+        self._partner_start = _device(np.zeros(V + E + 1, dtype=np.int32), ti.i32)     # no partner listed
+        self._partner_item = _device(np.zeros(1, dtype=np.int32), ti.i32)
+        self._partner_distance = _device(np.zeros(1), ti.f64)
         if contact.self_contact:
             self_margin = self._rest_exclusions(mesh, self_margin)
             self._self_margin.from_numpy(self_margin)
@@ -615,9 +661,9 @@ class ContactDetector:
         self._init_bodies(mesh.vertices, free, margin)
 
     def _rest_exclusions(self, mesh, self_margin: np.ndarray) -> np.ndarray:
-        """List the same-body pairs closer than q at rest (never pairs, sorted keys on the device) and
-        return self_margin (V + E,) lowered to D_min(Q) - q per query Q (its surface vertex, then its edge)
-        from those REST_MARGIN q or closer (module docstring)."""
+        """List the same-body pairs closer than q at rest (never pairs, sorted keys on the device), list
+        the others closer than REST_MARGIN q as each query's partners (`may_have_self_pair`) and return
+        self_margin (V + E,) lowered to D_min(Q) - q per query Q (its surface vertex, then its edge)."""
         q = self.contact.query_radius
         T, E = len(self.surface.triangles), len(self.surface.edges)
         rest = ti.Vector.ndarray(3, self.dtype, (1, mesh.n_vertices))
@@ -639,7 +685,14 @@ class ContactDetector:
         query = len(self.surface.vertices) + primitives[:, 0].astype(np.int64)      # an edge's query
         vt = kind == PairKind.VERTEX_TRIANGLE
         query[vt] = np.searchsorted(self.surface.vertices, primitives[vt, 0])       # a vertex's
-        np.minimum.at(self_margin, query[~close], distance[~close].astype(np.float64) - q)
+        far = ~close
+        np.minimum.at(self_margin, query[far], distance[far].astype(np.float64) - q)
+        order = np.lexsort((distance[far], query[far]))        # by query, then rest distance
+        item = np.where(vt, primitives[:, 1], T + primitives[:, 1])[far][order]
+        self._partner_start = _device(np.searchsorted(query[far][order], np.arange(len(self_margin) + 1))
+                                      .astype(np.int32), ti.i32)
+        self._partner_item = _device(np.append(item, 0).astype(np.int32), ti.i32)
+        self._partner_distance = _device(np.append(distance[far][order], np.inf).astype(np.float64), ti.f64)
         return self_margin
 
     def _init_bodies(self, rest: np.ndarray, free: np.ndarray, margin: np.ndarray):
@@ -696,7 +749,8 @@ class ContactDetector:
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
                                  self.active, self._deviation, self._vertex_deviation, self._self_margin,
-                                 self._own_items, self._free, self._moving, self._excluded_vt,
+                                 self._partner_start, self._partner_item, self._partner_distance, self._own_items,
+                                 self._free, self._moving, self._excluded_vt,
                                  self._excluded_ee, self._excluded_range, self._box,
                                  self._lo, self._hi, self._bucket_fill, self._bucket_start, self._entries,
                                  self._entry_box, self._partial, self._counter, self._found, self._found_distance,
