@@ -245,8 +245,8 @@ def test_bodies_that_cannot_have_pairs_are_left_out_and_the_pairs_stay_exact():
 def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
     """A body that seeks self pairs (not rigid) still leaves them out at each query whose own primitive
     cannot have one (`may_have_self_pair`): from its vertices' deviation from the rigid fit, the body's
-    largest, and its partners listed at rest with their own deviations (D_min(Q) and the lists checked
-    here against all same-body pairs). A bar squashed towards one end, by more or less, and a bar with
+    largest, and its partners listed at rest with their own deviations (the lists, whose first entry is
+    D_min(Q), and the body's D_min checked here against all same-body pairs). A bar squashed towards one end, by more or less, and a bar with
     one vertex or one triangle pushed by a few mm: the pairs are the brute-force ones, and only some
     queries seek self pairs."""
     from solver.physics.contact_detection import REST_MARGIN, SEARCH_SELF
@@ -274,7 +274,7 @@ def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
         np.minimum.at(d_min, query[keep], d[keep])
         listed = keep & (d < REST_MARGIN * q)
         want |= {(int(a), int(b), round(float(c), 12)) for a, b, c in zip(query[listed], item[listed], d[listed])}
-    np.testing.assert_allclose(detector._self_margin.to_numpy(), d_min - q, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(detector._margin.to_numpy(), d_min.min() - q, rtol=0, atol=1e-12)   # the body's
     start, items = detector._partner_start.to_numpy(), detector._partner_item.to_numpy()
     distances = detector._partner_distance.to_numpy()
     assert np.all(np.diff(start) >= 0) and start[-1] == len(want)
@@ -282,6 +282,10 @@ def test_a_query_far_from_where_its_body_bends_skips_its_own_body():
     for query in range(n_queries):
         rows = slice(start[query], start[query + 1])
         assert np.all(np.diff(distances[rows]) >= 0)    # ascending, so that the walk may stop early
+        if rows.stop > rows.start:                      # the first is D_min(Q)
+            assert distances[rows.start] == pytest.approx(d_min[query], abs=1e-12)
+        else:
+            assert d_min[query] == REST_MARGIN * q
         got |= {(query, int(b), round(float(c), 12)) for b, c in zip(items[rows], distances[rows])}
     assert got == want
     seen = []

@@ -41,9 +41,8 @@ vertices. Its partners that are not excluded and were closer than REST_MARGIN q 
 by rest distance (the least is D_min(Q)); the others stay beyond q while delta_Q + delta < q. Where
 none can come within q, its query skips its own body's items even though the body seeks self pairs. In
 a settled pile of soft balls, where the bottom ones are squashed by millimetres, most queries are far
-from where their body bends: 27 fine balls, 3,440 of 23,160 queries seek self pairs (12,429 with D_min(Q)
-- delta_Q - delta alone, all of them with the body's bound), and a detection takes 0.70x the time of
-the first of these. Buffers grow when a
+from where their body bends: of the 23,160 queries of 27 settled fine balls (`benchmarks/contact.py`),
+3,440 seek self pairs, where the body's bound alone searched all of them. Buffers grow when a
 detection needs more room (no pair is ever dropped: the launch is repeated); otherwise nothing is
 allocated per detection.
 """
@@ -67,8 +66,9 @@ RIGID_SLACK = 1e-3       # x q: round-off allowance when `active_bodies` compare
 # more than its work on a small mesh (2 shared cores: 0.75x the time of the parallel loops on a pile of one
 # ball, 0.86x on 64 cubes, 5,376 tets; 0.93x on 64 balls, 9,600 tets, but 1.14x on 24,576 touching tets).
 # All but the queries' loop, which holds most of a pile's work: it runs on one thread only below
-# SERIAL_DETECT_QUERIES surface vertices and edges (settled piles, 2 shared cores, against every loop on
-# one thread: 1.2x the time with 580 queries, 0.91x with 2,042, 0.66x with 8,256, 0.63x with 10,090).
+# SERIAL_DETECT_QUERIES surface vertices and edges (`ContactDetector.detect` timed on the settled piles of
+# benchmarks/contact.py, 2 shared cores, against every loop on one thread: 1.2x the time with 580 queries,
+# 0.91x with 2,042, 0.66x with 8,256, 0.63x with 10,090).
 SERIAL_DETECT_TETS = 6000
 SERIAL_DETECT_QUERIES = 1000
 
@@ -328,22 +328,20 @@ def record(counter: ti.template(), found: ti.template(), found_distance: ti.temp
 
 
 @ti.func
-def may_have_self_pair(query, moved, spread, self_margin: ti.template(), partner_start: ti.template(),
-                       partner_item: ti.template(), partner_distance: ti.template(), triangles: ti.template(),
-                       edges: ti.template(), vertex_deviation: ti.template(), q):
+def may_have_self_pair(query, moved, spread, partner_start: ti.template(), partner_item: ti.template(),
+                       partner_distance: ti.template(), triangles: ti.template(), edges: ti.template(),
+                       vertex_deviation: ti.template(), q):
     """Whether query Q of a body that seeks self pairs may have one (module docstring): its vertices lie
-    within moved (delta_Q, m) of their rigid places, the body's within spread (delta). None where
-    D_min(Q) - delta_Q - delta > q (self_margin (V + E,) holds D_min(Q) - q), nor, while delta_Q + delta < q
-    (no partner farther than REST_MARGIN q at rest can come within q), where each partner listed at rest
-    (partner_start (V + E + 1,), then partner_item the grid items and partner_distance their rest distances D,
-    ascending per query) has D - delta_Q - delta_P > q, delta_P its own vertices' largest deviation; the
-    ascending order ends the walk at the first partner even delta could not bring within q. True for NaN."""
+    within moved (delta_Q, m) of their rigid places, the body's within spread (delta). None while
+    delta_Q + delta < q (no partner farther than REST_MARGIN q at rest can come within q) and each partner
+    listed at rest (partner_start (V + E + 1,), then partner_item the grid items and partner_distance their
+    rest distances D, ascending per query) has D - delta_Q - delta_P > q, delta_P its own vertices' largest
+    deviation; the ascending order ends the walk at the first partner even delta could not bring within q
+    (at once where D_min(Q) - delta_Q - delta > q). True for NaN."""
     slack = RIGID_SLACK * q
     reach = moved + spread
     result = True
-    if reach < self_margin[query] - slack:
-        result = False
-    elif reach < (REST_MARGIN - 1) * q - slack:
+    if reach < (REST_MARGIN - 1) * q - slack:
         result = False
         s = partner_start[query]
         end = partner_start[query + 1]
@@ -367,9 +365,8 @@ def may_have_self_pair(query, moved, spread, self_margin: ti.template(), partner
 def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.ndarray(),
                  edges: ti.types.ndarray(), triangles: ti.types.ndarray(), body: ti.types.ndarray(),
                  active: ti.types.ndarray(), deviation: ti.types.ndarray(), vertex_deviation: ti.types.ndarray(),
-                 self_margin: ti.types.ndarray(), partner_start: ti.types.ndarray(),
-                 partner_item: ti.types.ndarray(), partner_distance: ti.types.ndarray(),
-                 own_items: ti.types.ndarray(), free: ti.types.ndarray(),
+                 partner_start: ti.types.ndarray(), partner_item: ti.types.ndarray(),
+                 partner_distance: ti.types.ndarray(), own_items: ti.types.ndarray(), free: ti.types.ndarray(),
                  moving: ti.types.ndarray(), excluded_vt: ti.types.ndarray(), excluded_ee: ti.types.ndarray(),
                  excluded_range: ti.types.ndarray(),
                  box: ti.types.ndarray(), lo: ti.types.ndarray(), hi: ti.types.ndarray(),
@@ -387,7 +384,7 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
     every body in rest mode). own_items (B,) 4-vectors: [lo, hi) of each body's triangles, then of its
     edges, as items (`own_item_ranges`), which its queries skip unless it seeks self pairs and the query's
     own primitive may have one (`may_have_self_pair`: deviation (B,) and vertex_deviation (N,) from
-    `active_bodies`, self_margin, partner_start, partner_item, partner_distance; not read in rest mode). excluded_vt,
+    `active_bodies`, partner_start, partner_item, partner_distance; not read in rest mode). excluded_vt,
     excluded_ee: the sorted keys of the rest exclusions; excluded_range (V + E,) 2-vectors: [begin, end) of
     each query's own keys there (`admissible`).
     Grid: box (2, T + E) the items' boxes (triangles, then edges; lower corners in row 0, upper in row 1),
@@ -456,8 +453,8 @@ def detect_pairs(positions: ti.types.ndarray(), row: ti.i32, vertices: ti.types.
                 moved = vertex_deviation[first]
                 if query >= n_vertices:
                     moved = ti.max(moved, vertex_deviation[edges[query - n_vertices][1]])
-                if may_have_self_pair(query, moved, deviation[body[first]], self_margin, partner_start,
-                                      partner_item, partner_distance, triangles, edges, vertex_deviation, q):
+                if may_have_self_pair(query, moved, deviation[body[first]], partner_start, partner_item,
+                                      partner_distance, triangles, edges, vertex_deviation, q):
                     ti.atomic_add(counter[1], 1)
                 else:
                     flags -= SEARCH_SELF
@@ -648,22 +645,20 @@ class ContactDetector:
         self._deviation = ti.ndarray(ti.f64, B)
         self._vertex_deviation = _device(np.zeros(n), ti.f64)
         margin = np.full(B, (REST_MARGIN - 1) * contact.query_radius)       # D_min - q per body, m
-        self_margin = np.full(V + E, (REST_MARGIN - 1) * contact.query_radius)     # D_min(Q) - q per query, m
-        self._self_margin = _device(self_margin, ti.f64)
         self._partner_start = _device(np.zeros(V + E + 1, dtype=np.int32), ti.i32)     # no partner listed
         self._partner_item = _device(np.zeros(1, dtype=np.int32), ti.i32)
         self._partner_distance = _device(np.zeros(1), ti.f64)
         if contact.self_contact:
-            self_margin = self._rest_exclusions(mesh, self_margin)
-            self._self_margin.from_numpy(self_margin)
+            self_margin = self._rest_exclusions(mesh)
             np.minimum.at(margin, self.bodies[np.concatenate([self.surface.vertices, self.surface.edges[:, 0]])],
                           self_margin)
         self._init_bodies(mesh.vertices, free, margin)
 
-    def _rest_exclusions(self, mesh, self_margin: np.ndarray) -> np.ndarray:
+    def _rest_exclusions(self, mesh) -> np.ndarray:
         """List the same-body pairs closer than q at rest (never pairs, sorted keys on the device), list
         the others closer than REST_MARGIN q as each query's partners (`may_have_self_pair`) and return
-        self_margin (V + E,) lowered to D_min(Q) - q per query Q (its surface vertex, then its edge)."""
+        D_min(Q) - q in m (V + E,) per query Q (its surface vertex, then its edge), (REST_MARGIN - 1) q for
+        a query without partners."""
         q = self.contact.query_radius
         T, E = len(self.surface.triangles), len(self.surface.edges)
         rest = ti.Vector.ndarray(3, self.dtype, (1, mesh.n_vertices))
@@ -686,6 +681,7 @@ class ContactDetector:
         vt = kind == PairKind.VERTEX_TRIANGLE
         query[vt] = np.searchsorted(self.surface.vertices, primitives[vt, 0])       # a vertex's
         far = ~close
+        self_margin = np.full(len(self.surface.vertices) + E, (REST_MARGIN - 1) * q)
         np.minimum.at(self_margin, query[far], distance[far].astype(np.float64) - q)
         order = np.lexsort((distance[far], query[far]))        # by query, then rest distance
         item = np.where(vt, primitives[:, 1], T + primitives[:, 1])[far][order]
@@ -748,9 +744,9 @@ class ContactDetector:
                 return 0
         while True:
             found = detect_pairs(positions, row, self._vertices, self._edges, self._triangles, self._body,
-                                 self.active, self._deviation, self._vertex_deviation, self._self_margin,
-                                 self._partner_start, self._partner_item, self._partner_distance, self._own_items,
-                                 self._free, self._moving, self._excluded_vt,
+                                 self.active, self._deviation, self._vertex_deviation, self._partner_start,
+                                 self._partner_item, self._partner_distance, self._own_items, self._free,
+                                 self._moving, self._excluded_vt,
                                  self._excluded_ee, self._excluded_range, self._box,
                                  self._lo, self._hi, self._bucket_fill, self._bucket_start, self._entries,
                                  self._entry_box, self._partial, self._counter, self._found, self._found_distance,
