@@ -253,6 +253,25 @@ def test_the_serial_sweep_of_small_meshes_gives_the_same_iterate():
     np.testing.assert_array_equal(results[0], results[1])
 
 
+def test_one_cpu_thread_sweeps_serially_at_any_size_and_more_threads_up_to_a_size_that_shrinks(monkeypatch):
+    """`vertex_solve.serial_sweep`: one thread gains nothing from the parallel loops' barriers, whatever the
+    mesh; two threads run serially below SERIAL_SWEEP_TETS, T threads below SERIAL_SWEEP_TETS (1/2) / (1 - 1/T)
+    (8 threads: 22,857 tets); a GPU never."""
+    from types import SimpleNamespace
+
+    from solver.vbd import vertex_solve
+
+    def serial(n_tets, threads, on_cpu=True):
+        monkeypatch.setattr(vertex_solve, "running_config", lambda: SimpleNamespace(cpu_max_num_threads=threads))
+        return vertex_solve.serial_sweep(n_tets, on_cpu)
+
+    limit = vertex_solve.SERIAL_SWEEP_TETS
+    assert serial(10 ** 7, 1)
+    assert serial(limit - 1, 2) and not serial(limit, 2)
+    assert serial(22_856, 8) and not serial(22_858, 8)
+    assert not serial(100, 2, on_cpu=False)
+
+
 def test_the_steps_of_a_small_mesh_on_one_thread_are_those_of_the_parallel_loops():
     """On the CPU a small mesh runs every loop of its step on one thread (`vertex_solve.serial_sweep`): the
     guess, the Chebyshev steps, the stop test, the velocity update and the reads and writes of positions

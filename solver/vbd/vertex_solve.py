@@ -16,7 +16,9 @@ state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of 
 offsets (S + 1,) int32 first adjacency entry of each slot; others (E, 3) int32; adj_f (E, ADJ_FLOATS);
 params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 """
-from .._ti import ti
+import os
+
+from .._ti import running_config, ti
 
 from ..physics.ground import ground_force_hessian
 from ..physics.inertia import inertia_block, inertia_gradient
@@ -30,15 +32,25 @@ J_MIN = 0.1   # with keep_orientation, no vertex step compresses a tet below a t
 MAX_CONDITION_F64, MAX_CONDITION_F32 = 1e12, 1e6     # `max_condition`
 
 
-# Below this many tets a CPU sweep runs each colour on one thread: the barrier that ends a parallel colour
-# costs about 20 us on the CPU backend, more than the colour's work on a classroom-size mesh (3,840 tets,
-# 8 colours: 0.20 ms per iteration on one thread against 0.28 ms on two; benchmarks/throughput.py).
-SERIAL_SWEEP_TETS = 6000
+# Below this many tets a CPU sweep on two threads runs each colour on one thread: the barrier that ends a
+# parallel colour costs tens of us on the CPU backend, more than the second thread saves on a mesh up to
+# about 40,000 tets (a soft bar's step of 20 iterations, a fresh process for each, 2 shared cores: 29.8 ns
+# per tet-iteration on one thread against 60.1 on two at 6,480 tets, 28.0 / 37.8 at 15,360, 27.8 / 29.6 at
+# 36,000, 27.0 / 17.8 at 96,000). With only one thread, one thread whatever the size (36,000 tets: 28.4
+# against 46.5 for the parallel loops; 96,000: 27.1 / 32.5).
+SERIAL_SWEEP_TETS = 40000
 
 
 def serial_sweep(n_tets: int, on_cpu: bool) -> bool:
-    """Whether `vbd_iteration` should run each colour serially (small meshes on the CPU only)."""
-    return on_cpu and n_tets < SERIAL_SWEEP_TETS
+    """Whether `vbd_iteration` (and the step's other loops) should run each colour serially: on the CPU,
+    always with one thread, and with T threads below SERIAL_SWEEP_TETS (1/2) / (1 - 1/T) tets, where the
+    share of the work that T - 1 more threads take over pays for the barriers as it does for one more
+    (measured on two threads only; the barriers taken to cost the same with more)."""
+    if not on_cpu:
+        return False
+    config = running_config()
+    threads = config.cpu_max_num_threads if config is not None else os.cpu_count() or 1
+    return threads == 1 or n_tets < SERIAL_SWEEP_TETS * 0.5 / (1 - 1 / threads)
 
 
 def unrolled_colors(n_colors: int, serial: bool) -> int:
