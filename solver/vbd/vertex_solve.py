@@ -16,8 +16,6 @@ state (STATE_ROWS, N) 3-vectors; mass (N,) kg; color_order (S,) int32 vertex of 
 offsets (S + 1,) int32 first adjacency entry of each slot; others (E, 3) int32; adj_f (E, ADJ_FLOATS);
 params (PARAM_COUNT,); see `topology.Topology` and `layout.py`.
 """
-import os
-
 from .._ti import running_config, ti
 
 from ..physics.ground import ground_force_hessian
@@ -34,10 +32,11 @@ MAX_CONDITION_F64, MAX_CONDITION_F32 = 1e12, 1e6     # `max_condition`
 
 # Below this many tets a CPU sweep on two threads runs each colour on one thread: the barrier that ends a
 # parallel colour costs tens of us on the CPU backend, more than the second thread saves on a mesh up to
-# about 40,000 tets (a soft bar's step of 20 iterations, a fresh process for each, 2 shared cores: 29.8 ns
-# per tet-iteration on one thread against 60.1 on two at 6,480 tets, 28.0 / 37.8 at 15,360, 27.8 / 29.6 at
-# 36,000, 27.0 / 17.8 at 96,000). With only one thread, one thread whatever the size (36,000 tets: 28.4
-# against 46.5 for the parallel loops; 96,000: 27.1 / 32.5).
+# about 40,000 tets. benchmarks/throughput.py, float64, 2 shared cores: 49 ns per tet-iteration in parallel
+# colours at 12,000 tets (its results at bed6e26, threshold 6,000) against 28 on one thread now, 37 / 27 at
+# 30,240, and at 96,000 18 in parallel against 28 on one thread; the crossover, between those, from a
+# soft bar's step timed at 36,000 tets (29.6 in parallel against 27.8). With only one thread, one thread
+# whatever the size (96,000 tets: 43 in that thread's parallel loops, 28 now).
 SERIAL_SWEEP_TETS = 40000
 
 
@@ -48,8 +47,7 @@ def serial_sweep(n_tets: int, on_cpu: bool) -> bool:
     (measured on two threads only; the barriers taken to cost the same with more)."""
     if not on_cpu:
         return False
-    config = running_config()
-    threads = config.cpu_max_num_threads if config is not None else os.cpu_count() or 1
+    threads = running_config().cpu_max_num_threads         # Taichi runs: `Simulation` initialised it first
     return threads == 1 or n_tets < SERIAL_SWEEP_TETS * 0.5 / (1 - 1 / threads)
 
 
