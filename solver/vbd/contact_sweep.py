@@ -58,6 +58,7 @@ from .vertex_solve import force_hessian, newton_step, step_limit
 
 SAFETY = 0.999      # `guess_within_bounds`: the fraction of the least bound a refresh at x_n would set
 MEASURE_ROUNDOFF = 1e-6     # x query radius: `refresh_bounds` measures the pairs whose lower bound is this close
+FAR = 1e30                  # m: `refresh_bounds`' start for the least distance at a vertex (any float type holds it)
 
 
 @ti.func
@@ -341,7 +342,7 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
                    pair: ti.types.ndarray(), n_pairs: ti.i32, incidence_offsets: ti.types.ndarray(),
                    incidence: ti.types.ndarray(), q: ti.f64, r: ti.f64, g: ti.f64, distance: ti.types.ndarray(),
                    exact: ti.types.ndarray(), reach: ti.types.ndarray(), x_det: ti.types.ndarray(),
-                   moved: ti.types.ndarray(), bound: ti.types.ndarray(),
+                   moved: ti.types.ndarray(), bound: ti.types.ndarray(), nearest: ti.types.ndarray(),
                    live: ti.types.ndarray(), live_incidence: ti.types.ndarray(), live_end: ti.types.ndarray(),
                    near_incidence: ti.types.ndarray(), near_end: ti.types.ndarray(), horizon: ti.f64,
                    free: ti.types.ndarray(), dtype: ti.template(), serial: ti.template(),
@@ -356,13 +357,14 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
       closer (scratch (P,)), and it is at least distance[p] - reach[p] and, where exact, at most
       distance[p] + reach[p] apart at x;
       U_i = min(q - 2 Delta, distance[p] + reach[p] of each exact pair p of i), at least the distance of
-      i's closest pair at x (scratch, in bound);
+      i's closest pair at x (scratch, in bound; each pair writes its four vertices' minima, in the same
+      loop, so that no vertex walks its incidence list);
       for every pair whose lower bound distance[p] - reach[p] is below (a round-off above) the U_i of one
-      of its vertices, distance[p] = d_p, the exact distance at x; every other pair is farther than the
-      closest pair of each of its vertices (or the cap), changes no bound and keeps the lower bound (not
-      exact, unless nothing moved);
+      of its vertices, or with lists below r + 2 horizon, distance[p] = d_p, the exact distance at x;
+      every other pair is farther than the closest pair of each of its vertices (or the cap), changes no
+      bound and keeps the lower bound (not exact, unless nothing moved), and cannot be near (below);
       b_i = g min(q - 2 Delta, distance[p] of each pair p of i) and x_det,i = x_i, for every vertex: the
-      bounds of the exact distances;
+      bounds of the exact distances (nearest (N,) scratch: the minima, written pair by pair as U_i);
     and with lists (without, live and the lists stay as they were: for a refresh that another follows
     before the next iteration, `contact_state.ContactStage.begin_step`):
       live[p] = 1 unless distance[p] >= r + (largest b of its first primitive) + (largest b of its second),
@@ -374,30 +376,30 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
       order (while no vertex has moved farther than the horizon since x_det, the others are beyond the
       radius: the sweep walks only the near ones until one has)."""
     delta = ti.cast(0.0, ti.f64)
+    far = ti.cast(FAR, dtype)
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
         ti.atomic_max(delta, ti.cast((state[row, i] - x_full[i]).norm(), ti.f64))
         moved[i] = ti.cast((state[row, i] - x_det[i]).norm(), dtype)
+        bound[i] = far
+        nearest[i] = far
     cap = ti.cast(q - 2 * delta, dtype)
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
         v = pair[p]
         reach[p] = pair_reach(kind[p], ti.Vector([moved[v[j]] for j in ti.static(range(4))]))
-    ti.loop_config(serialize=serial)
-    for i in range(x_full.shape[0]):
-        upper = cap
-        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
-            p = incidence[s]
-            if exact[p]:
-                upper = ti.min(upper, distance[p] + reach[p])
-        bound[i] = upper
+        if exact[p]:
+            for j in ti.static(range(4)):
+                ti.atomic_min(bound[v[j]], distance[p] + reach[p])
     roundoff = ti.cast(MEASURE_ROUNDOFF * q, dtype)
+    near = ti.cast(r + 2 * horizon, dtype) if ti.static(lists) else ti.cast(0, dtype)
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
+        v = pair[p]
         if reach[p] > 0 or not exact[p]:
-            v = pair[p]
             lower = distance[p] - reach[p]
-            if lower < ti.max(bound[v[0]], bound[v[1]], bound[v[2]], bound[v[3]]) + roundoff:
+            upper = ti.min(cap, ti.max(bound[v[0]], bound[v[1]], bound[v[2]], bound[v[3]]))
+            if lower < ti.max(upper, near) + roundoff:
                 d, w, n = pair_geometry(kind[p], state[row, v[0]], state[row, v[1]], state[row, v[2]],
                                         state[row, v[3]], dtype)
                 distance[p] = d
@@ -405,12 +407,11 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
             else:
                 distance[p] = lower
                 exact[p] = 0
+        for j in ti.static(range(4)):
+            ti.atomic_min(nearest[v[j]], distance[p])
     ti.loop_config(serialize=serial)
     for i in range(x_full.shape[0]):
-        nearest = cap
-        for s in range(incidence_offsets[i], incidence_offsets[i + 1]):
-            nearest = ti.min(nearest, distance[incidence[s]])
-        bound[i] = ti.cast(g * nearest, dtype)
+        bound[i] = ti.cast(g * ti.min(cap, nearest[i]), dtype)
         x_det[i] = state[row, i]
     if ti.static(lists):
         ti.loop_config(serialize=serial)
@@ -418,7 +419,6 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
             v = pair[p]
             b = ti.Vector([bound[v[j]] * free[v[j]] for j in ti.static(range(4))])
             live[p] = ti.cast(distance[p] < r + pair_reach(kind[p], b), ti.i32)
-        near = ti.cast(r + 2 * horizon, dtype)
         ti.loop_config(serialize=serial)
         for i in range(x_full.shape[0]):
             end = incidence_offsets[i]
