@@ -91,6 +91,7 @@ def test_refreshes_keep_the_active_pairs_and_never_let_a_pair_touch(monkeypatch)
             live_incidence, live_end = stage.live_incidence.to_numpy(), stage.live_end.to_numpy()
             near_incidence, near_end = stage.near_incidence.to_numpy(), stage.near_end.to_numpy()
             near = held < contact.radius + 2 * horizon * contact.radius
+            assert flagged[near].all()          # a near pair is measured: near, not only maybe near
             for i in range(mesh.n_vertices):
                 listed = incidence[offsets[i]:offsets[i + 1]]
                 np.testing.assert_array_equal(live_incidence[offsets[i]:live_end[i]], listed[live[listed] == 1])

@@ -22,8 +22,8 @@ q - 2 Delta, or at least that upper bound of the closest measured pair of each o
 b_v. The refresh keeps that lower bound as the pair's distance instead (`refresh_bounds`): the bounds are
 the same, and in a resting pile few pairs besides the closest one of each vertex are measured (and, where
 the refresh lists the pairs the sweep walks, those whose lower bound is within r + 2 horizon, below: a
-near pair is then one that is, not one that may be, which spares the sweep a quarter of its walk in a
-settled pile of 64 coarse balls).
+near pair is then one that is, not one that may be, and the sweep walks no pair that only a loose lower
+bound made near).
 
 The same bounds tell which pairs can matter before the next refresh: a pair d_p apart at x_det whose
 vertices' bounds are at most b stays farther than d_p - 2 b, so with d_p >= r + 2 b its barrier stays

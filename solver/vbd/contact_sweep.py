@@ -392,7 +392,7 @@ def refresh_bounds(state: ti.types.ndarray(), row: ti.i32, x_full: ti.types.ndar
             for j in ti.static(range(4)):
                 ti.atomic_min(bound[v[j]], distance[p] + reach[p])
     roundoff = ti.cast(MEASURE_ROUNDOFF * q, dtype)
-    near = ti.cast(r + 2 * horizon, dtype) if ti.static(lists) else ti.cast(0, dtype)
+    near = ti.cast(r + 2 * horizon, dtype) if ti.static(lists) else -far      # without lists: no pair for this
     ti.loop_config(serialize=serial)
     for p in range(n_pairs):
         v = pair[p]
